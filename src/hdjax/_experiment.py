@@ -1,0 +1,137 @@
+"""Measured experiments as array PyTrees, one per record; batches are padded and masked."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+
+MODES = ("constrained", "free", "friction")
+CONSTRAINED, FREE, FRICTION = 0, 1, 2
+
+
+class Experiment(eqx.Module):
+    """One constrained or free-motion record sampled on a uniform time grid (SI units).
+
+    **Attributes:**
+
+    - `time`: sample times (s), uniform step.
+    - `current`: motor current (A), the input that drives the simulation.
+    - `torque`: measured transmitted torque (N·m).
+    - `motor_velocity`: measured wave-generator velocity (rad/s).
+    - `output_position`: measured output angle (rad); zeros where not measured.
+    - `motor_position`: measured wave-generator angle (rad); NaN-free, zeros where not measured.
+    - `mask`: True on real samples, False on padding (batches of different lengths).
+    - `free`: 1.0 for free motion, 0.0 for constrained (output locked).
+    - `has_output_position`, `has_motor_position`: 1.0 where the channel was measured.
+    - `start_time`: time since the session began (s), 0 when not given.
+    - `mode`: 0 constrained, 1 free (see `MODES`).
+    """
+
+    time: Float[Array, " time"]
+    current: Float[Array, " time"]
+    torque: Float[Array, " time"]
+    motor_velocity: Float[Array, " time"]
+    output_position: Float[Array, " time"]
+    motor_position: Float[Array, " time"]
+    mask: Bool[Array, " time"]
+    free: Float[Array, ""]
+    has_output_position: Float[Array, ""]
+    has_motor_position: Float[Array, ""]
+    start_time: Float[Array, ""]
+
+    @property
+    def n_samples(self) -> int:
+        return int(np.sum(np.asarray(self.mask)))
+
+
+def make_experiment(
+    time,
+    current,
+    torque,
+    motor_velocity,
+    *,
+    mode: str,
+    output_position=None,
+    motor_position=None,
+    start_time: float = 0.0,
+) -> Experiment:
+    """Build an `Experiment` from arrays (SI units). `mode` is "constrained" or "free"; free motion
+    needs `output_position`. Arrays must be 1-D, equally long and finite; time uniform."""
+    if mode not in ("constrained", "free"):
+        raise ValueError(f"`make_experiment`: mode must be 'constrained' or 'free', got {mode!r}.")
+    arrays = {"time": time, "current": current, "torque": torque, "motor_velocity": motor_velocity}
+    if output_position is not None:
+        arrays["output_position"] = output_position
+    if motor_position is not None:
+        arrays["motor_position"] = motor_position
+    arrays = {k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()}
+    n = len(arrays["time"])
+    for k, v in arrays.items():
+        if v.ndim != 1 or len(v) != n:
+            raise ValueError(f"`make_experiment`: `{k}` must be 1-D with {n} samples like `time`, got shape {v.shape}.")
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"`make_experiment`: `{k}` has NaN or inf at sample {int(np.argmin(np.isfinite(v)))}.")
+    if n < 3:
+        raise ValueError(f"`make_experiment`: need at least 3 samples, got {n}.")
+    if mode == "free" and output_position is None:
+        raise ValueError("`make_experiment`: free-motion experiments need `output_position` (rad).")
+    zeros = np.zeros(n)
+    return Experiment(
+        time=jnp.asarray(arrays["time"]),
+        current=jnp.asarray(arrays["current"]),
+        torque=jnp.asarray(arrays["torque"]),
+        motor_velocity=jnp.asarray(arrays["motor_velocity"]),
+        output_position=jnp.asarray(arrays.get("output_position", zeros)),
+        motor_position=jnp.asarray(arrays.get("motor_position", zeros)),
+        mask=jnp.ones(n, dtype=bool),
+        free=jnp.asarray(1.0 if mode == "free" else 0.0),
+        has_output_position=jnp.asarray(1.0 if output_position is not None else 0.0),
+        has_motor_position=jnp.asarray(1.0 if motor_position is not None else 0.0),
+        start_time=jnp.asarray(float(start_time)),
+    )
+
+
+def _pad(x: np.ndarray, n: int, *, extend_time: bool = False) -> np.ndarray:
+    if len(x) == n:
+        return x
+    if extend_time:
+        dt = x[1] - x[0]
+        return np.concatenate([x, x[-1] + dt * np.arange(1, n - len(x) + 1)])
+    return np.concatenate([x, np.full(n - len(x), x[-1])])
+
+
+def stack_experiments(experiments: list[Experiment], length: int | None = None) -> Experiment:
+    """Stack experiments along a leading `experiment` axis, padding each to `length` samples
+    (default: the longest). Padding repeats the last sample, extends the time grid and is masked
+    out, so it never enters a residual."""
+    if not experiments:
+        raise ValueError("`stack_experiments`: no experiments given.")
+    n = max(int(e.time.shape[0]) for e in experiments) if length is None else length
+    fields = {}
+    for name in Experiment.__dataclass_fields__:
+        vals = []
+        for e in experiments:
+            v = np.asarray(getattr(e, name))
+            if v.ndim == 1:
+                if name == "mask":
+                    v = np.concatenate([v, np.zeros(n - len(v), dtype=bool)])
+                else:
+                    v = _pad(v, n, extend_time=(name == "time"))
+            vals.append(v)
+        fields[name] = jnp.asarray(np.stack(vals))
+    return Experiment(**fields)
+
+
+def unstack_experiments(batch: Experiment) -> list[Experiment]:
+    """Inverse of `stack_experiments`, trimming the padding."""
+    out = []
+    for i in range(batch.time.shape[0]):
+        m = np.asarray(batch.mask[i])
+        n = int(m.sum())
+        kw = {}
+        for name in Experiment.__dataclass_fields__:
+            v = getattr(batch, name)[i]
+            kw[name] = v[:n] if v.ndim == 1 else v
+        out.append(Experiment(**kw))
+    return out
