@@ -23,9 +23,11 @@ from ._model import (
     friction_torque as friction_torque,
     motor_acceleration as motor_acceleration,
 )
+from ._effects import EFFECT_NAMES as EFFECT_NAMES, Effects as Effects
 from ._plant import (
     Simulator as Simulator,
     Trajectory as Trajectory,
+    initial_state as initial_state,
     simulate as simulate,
     simulate_batch as simulate_batch,
 )

@@ -1,15 +1,16 @@
 r"""The harmonic-drive plant as a diffrax ODE driven by the measured motor current.
 
-State (SI units): torsion $\Delta\theta$ (rad, output side), wave-generator velocity $\omega_m$
+State (SI units): kinematic torsion $q = \theta_m/N - \theta_o$ (rad, output side; equal to the
+flexspline torsion $\Delta\theta$ unless a kinematic error is modelled), wave-generator velocity $\omega_m$
 (rad/s), output angle $\theta_o$ (rad) and output velocity $\omega_o$ (rad/s):
 
-$$\dot{\Delta\theta} = \omega_m/N - \omega_o,\quad
+$$\dot q = \omega_m/N - \omega_o,\quad
 J_{eff}\dot\omega_m = K_m i(t) - T/N - T_f(\omega_m),\quad
 \dot\theta_o = \omega_o,\quad J_{load}\dot\omega_o = f\,T,$$
 
 with $T$ from eq. 5 and $f = 1$ in free motion, $0$ with the output locked. Torsion is a state
 (rather than the motor angle) so that it is never a small difference of large angles. The motor
-angle is recovered as $\theta_m = \theta_{m0} + N((\Delta\theta - \Delta\theta_0) + (\theta_o - \theta_{o0}))$.
+angle is recovered as $\theta_m = \theta_{m0} + N((q - q_0) + (\theta_o - \theta_{o0}))$.
 
 Numerics (measured, see `benchmarks/solver_choice.py` and the README): the structural damping
 $|\dot{\Delta\theta}|^{1/2}$ and the smoothed Coulomb step give the ODE a very large Jacobian near
@@ -27,7 +28,9 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._experiment import Experiment
 from ._solver import Rodas3
-from ._model import Drive, Parameters, Smoothing, compliance_torque, motor_acceleration
+from ._effects import Effects, dahl_rate, stiffness_torque
+from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_basis
+from ._smooth import smooth_signed_power
 
 
 class Trajectory(eqx.Module):
@@ -40,7 +43,7 @@ class Trajectory(eqx.Module):
     - `motor_position`: wave-generator angle (rad).
     - `output_position`: output angle (rad).
     - `output_velocity`: output velocity (rad/s).
-    - `torsion`: flexspline torsion (rad).
+    - `torsion`: flexspline torsion (rad), including kinematic error when modelled.
     - `success`: True when the solve finished (False: step budget exhausted or solver failure).
     - `num_steps`: accepted solver steps.
     """
@@ -66,6 +69,9 @@ class Simulator(eqx.Module):
     - `adjoint`: `ForwardMode()` by default, for LM Jacobians and `jacfwd` sensitivities; use
       `RecursiveCheckpointAdjoint()` for reverse-mode scalar gradients.
     - `max_steps`: step budget per experiment.
+    - `fixed_step`: if given (s), use `ConstantStepSize` with this step instead of the PID
+      controller. The discrete solution is then a smooth function of the parameters, which is what
+      the AD-vs-finite-difference checks need; it must divide the sample period.
     - `smoothing`: scales of the smooth sign/step/power stand-ins (`Smoothing`).
     - `initial_window`: samples used to estimate the initial state by a local linear fit.
     """
@@ -76,6 +82,7 @@ class Simulator(eqx.Module):
     step_to_samples: bool = True
     adjoint: dfx.AbstractAdjoint = dfx.ForwardMode()
     max_steps: int = 200_000
+    fixed_step: float | None = None
     smoothing: Smoothing = Smoothing()
     initial_window: int = 11
 
@@ -130,52 +137,104 @@ class UniformLinearInput(eqx.Module):
         return (1.0 - w) * self.values[i] + w * self.values[i + 1]
 
 
+def _friction(p: Parameters, drive: Drive, wm, theta_m, T, t_session, effects: Effects, smoothing: Smoothing):
+    """Eq. 9 with the friction extensions of `effects` (N·m)."""
+    basis = friction_basis(wm, p.Tss2, smoothing)
+    viscous = basis[..., 0] * p.Tvp + basis[..., 1] * p.Tvn
+    coulomb = basis[..., 2] * p.Tsp + basis[..., 3] * p.Tsn
+    stribeck = basis[..., 4] * p.Tssp1 + basis[..., 5] * p.Tssn1
+    if "thermal_drift" in effects.active:
+        viscous = viscous * (1.0 + effects.beta * jnp.exp(-t_session / jnp.abs(effects.tau)))
+    if "position_dependent_friction" in effects.active:
+        coulomb = coulomb * (1.0 + effects.periodic("position_dependent_friction", theta_m))
+    if "load_dependent_friction" in effects.active:
+        sg = basis[..., 2] + basis[..., 3]
+        coulomb = coulomb + effects.mu * jnp.sqrt(T * T + 1e-6) / drive.gear_ratio * sg
+    return viscous + coulomb + stribeck
+
+
+def _outputs(p, drive, y, geometry, effects: Effects, smoothing: Smoothing):
+    """Motor angle, true torsion, torsion rate and transmitted torque from the state."""
+    q, wm, th_o, wo = y[:4]
+    q0, th_o0, th_m0 = geometry
+    N = drive.gear_ratio
+    th_m = th_m0 + N * ((q - q0) + (th_o - th_o0))
+    torsion = q + effects.periodic("kinematic_error", th_m)
+    rate = wm / N - wo + effects.periodic_rate("kinematic_error", th_m, wm)
+    T = stiffness_torque(p.K1, torsion, effects) + p.Tst * smooth_signed_power(
+        rate, p.alpha, smoothing.torsion_rate_scale
+    )
+    if "rate_independent_hysteresis" in effects.active:
+        T = T + effects.Th * y[4]
+    return th_m, torsion, rate, T
+
+
 def _vector_field(t, y, args):
-    p, drive, current, free, smoothing = args
-    torsion, wm, th_o, wo = y
-    rate = wm / drive.gear_ratio - wo
-    T = compliance_torque(p, torsion, rate, smoothing)
-    dwm = motor_acceleration(p, drive, current.evaluate(t), T, wm, smoothing)
+    p, drive, current, free, start_time, geometry, effects, smoothing = args
+    q, wm, th_o, wo = y[:4]
+    th_m, torsion, rate, T = _outputs(p, drive, y, geometry, effects, smoothing)
+    i = current.evaluate(t - effects.delay) if "input_delay" in effects.active else current.evaluate(t)
+    drive_torque = drive.torque_constant * i + effects.periodic("cogging", th_m)
+    Tf = _friction(p, drive, wm, th_m, T, start_time + t, effects, smoothing)
+    dwm = (drive_torque - T / drive.gear_ratio - Tf) / p.Jeff
+    dq = wm / drive.gear_ratio - wo
     dwo = free * T / drive.load_inertia
-    return (rate, dwm, wo, dwo)
+    dy = (dq, dwm, wo, dwo)
+    if "rate_independent_hysteresis" in effects.active:
+        dy = dy + (dahl_rate(y[4], rate, effects, smoothing.torsion_rate_scale),)
+    return dy
 
 
-def simulate(p: Parameters, drive: Drive, exp: Experiment, *, simulator: Simulator = Simulator()) -> Trajectory:
+def simulate(
+    p: Parameters,
+    drive: Drive,
+    exp: Experiment,
+    *,
+    effects: Effects = Effects(),
+    simulator: Simulator = Simulator(),
+) -> Trajectory:
     """Simulate one experiment driven by its measured current; outputs at its sample times.
 
-    Padded samples (mask False) are simulated too (with the last current held) and should be
-    ignored by the caller. Under `vmap`, failures are reported in `Trajectory.success` rather than
-    raised.
+    `effects` switches on model extensions (`hdjax.Effects`, SPEC §4); the default is the
+    paper's model. Padded samples (mask False) are simulated too (with the last current held) and
+    should be ignored by the caller. Under `vmap`, failures are reported in `Trajectory.success`
+    rather than raised.
     """
     y0, th_m0 = initial_state(p, drive, exp, simulator)
+    if "rate_independent_hysteresis" in effects.active:
+        y0 = y0 + (jnp.zeros_like(y0[0]),)
+    geometry = (y0[0], y0[2], th_m0)
     current = UniformLinearInput(exp.time[0], exp.time[1] - exp.time[0], exp.current)
-    pid = dfx.PIDController(rtol=simulator.rtol, atol=simulator.atol)
-    controller = dfx.ClipStepSizeController(pid, step_ts=exp.time) if simulator.step_to_samples else pid
     dt = exp.time[1] - exp.time[0]
+    if simulator.fixed_step is not None:
+        controller = dfx.ConstantStepSize()
+        dt0 = simulator.fixed_step
+    else:
+        pid = dfx.PIDController(rtol=simulator.rtol, atol=simulator.atol)
+        controller = dfx.ClipStepSizeController(pid, step_ts=exp.time) if simulator.step_to_samples else pid
+        dt0 = dt / 4
     sol = dfx.diffeqsolve(
         dfx.ODETerm(_vector_field),
         simulator.solver,
         t0=exp.time[0],
         t1=exp.time[-1],
-        dt0=dt / 4,
+        dt0=dt0,
         y0=y0,
-        args=(p, drive, current, exp.free, simulator.smoothing),
+        args=(p, drive, current, exp.free, exp.start_time, geometry, effects, simulator.smoothing),
         saveat=dfx.SaveAt(ts=exp.time),
         stepsize_controller=controller,
         adjoint=simulator.adjoint,
         max_steps=simulator.max_steps,
         throw=False,
     )
-    torsion, wm, th_o, wo = sol.ys
-    N = drive.gear_ratio
-    T = compliance_torque(p, torsion, wm / N - wo, simulator.smoothing)
-    th_m = th_m0 + N * ((torsion - y0[0]) + (th_o - y0[2]))
+    th_m, torsion, _, T = _outputs(p, drive, sol.ys, geometry, effects, simulator.smoothing)
+    measured_T = T + effects.periodic("torque_sensor_ripple", th_m)
     return Trajectory(
-        torque=T,
-        motor_velocity=wm,
+        torque=measured_T,
+        motor_velocity=sol.ys[1],
         motor_position=th_m,
-        output_position=th_o,
-        output_velocity=wo,
+        output_position=sol.ys[2],
+        output_velocity=sol.ys[3],
         torsion=torsion,
         success=sol.result == dfx.RESULTS.successful,
         num_steps=sol.stats["num_accepted_steps"],
@@ -183,12 +242,16 @@ def simulate(p: Parameters, drive: Drive, exp: Experiment, *, simulator: Simulat
 
 
 def simulate_batch(
-    p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator = Simulator()
+    p: Parameters,
+    drive: Drive,
+    batch: Experiment,
+    *,
+    effects: Effects = Effects(),
+    simulator: Simulator = Simulator(),
 ) -> Trajectory:
     """`simulate` over a stacked batch (`stack_experiments`), one shared parameter set."""
-    return jax.vmap(lambda e: simulate(p, drive, e, simulator=simulator))(batch)
+    return jax.vmap(lambda e: simulate(p, drive, e, effects=effects, simulator=simulator))(batch)
 
 
-simulate_batch_jit = eqx.filter_jit(simulate_batch)
 
 

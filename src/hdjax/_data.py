@@ -1,0 +1,1029 @@
+"""Measured data on disk: a dataset folder (`dataset.yaml` + one CSV per experiment), configs.
+
+The contract is SPEC.md section 2. A dataset folder looks like
+
+```
+my-rig/
+  dataset.yaml      # name, drive constants, list of experiments (file, mode, start_time)
+  locked_01.csv     # one experiment per CSV, header row, uniform time step, SI units
+  free_01.csv
+  truth.yaml        # optional, free-form (e.g. the virtual rig's true parameters)
+```
+
+- `load_dataset(folder_or_yaml)` reads and validates it into a `Dataset`;
+- `write_dataset(...)` writes one (atomically, file by file);
+- `load_config(path)` reads a config YAML that names a dataset folder plus options;
+- `resolve_target(target)` turns a command's `TARGET` (folder, dataset.yaml or config) into
+  `(Dataset, config)`.
+
+Every bad input raises `DatasetError` (a `ValueError`) with a one-paragraph message naming the
+file, the line / column / field and what to change. Nothing is resampled, dropped or clipped;
+extra CSV columns are ignored with one warning per file.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import difflib
+import math
+import os
+import pathlib
+import re
+import tempfile
+import warnings
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import yaml
+from jaxtyping import Array, Bool, Float
+
+from ._experiment import MODES, Experiment, make_experiment
+from ._model import Drive
+
+
+__all__ = [
+    "COLUMNS",
+    "DatasetError",
+    "Dataset",
+    "FrictionExperiment",
+    "load_config",
+    "load_dataset",
+    "make_friction_experiment",
+    "resolve_target",
+    "write_dataset",
+]
+
+DATASET_FILE = "dataset.yaml"
+TRUTH_FILE = "truth.yaml"
+
+#: CSV columns per mode: `(required, optional)`, SI units (see SPEC.md section 2).
+COLUMNS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "constrained": (("time", "current", "motor_velocity", "torque"), ("output_position", "motor_position")),
+    "free": (("time", "current", "motor_velocity", "torque", "output_position"), ("motor_position",)),
+    "friction": (("time", "velocity", "friction_torque"), ("position",)),
+}
+_UNITS = {
+    "time": "s",
+    "current": "A",
+    "motor_velocity": "rad/s",
+    "torque": "N·m",
+    "output_position": "rad",
+    "motor_position": "rad",
+    "velocity": "rad/s",
+    "friction_torque": "N·m",
+    "position": "rad",
+}
+_TOP_KEYS = ("name", "drive", "experiments")
+_DRIVE_KEYS = ("gear_ratio", "torque_constant", "load_inertia")
+_ENTRY_KEYS = ("file", "mode", "start_time")
+_MAX_JITTER = 0.01  # relative time-step jitter allowed, |dt - median dt| / median dt
+
+
+class DatasetError(ValueError):
+    """Bad dataset, CSV or config input. The message is one paragraph naming the file, the line,
+    column or field, what is wrong and what to change."""
+
+
+class DatasetWarning(UserWarning):
+    """Input that is accepted but partly ignored (extra CSV columns, unknown YAML keys)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Friction experiments
+# ----------------------------------------------------------------------------------------------
+
+
+class FrictionExperiment(eqx.Module):
+    """One friction record: friction torque against velocity (SI units), for fitting eq. 9 alone.
+
+    **Attributes:**
+
+    - `time`: sample times (s), uniform step.
+    - `velocity`: velocity of the side the friction acts on (rad/s; wave generator for eq. 9).
+    - `friction_torque`: measured friction torque (N·m).
+    - `position`: angle (rad); zeros where not measured.
+    - `has_position`: 1.0 when `position` was measured, else 0.0.
+    - `start_time`: time since the session began (s), 0 when not given.
+    - `mask`: True on real samples, False on padding.
+    """
+
+    time: Float[Array, " time"]
+    velocity: Float[Array, " time"]
+    friction_torque: Float[Array, " time"]
+    position: Float[Array, " time"]
+    has_position: Float[Array, ""]
+    start_time: Float[Array, ""]
+    mask: Bool[Array, " time"]
+
+    @property
+    def n_samples(self) -> int:
+        return int(np.sum(np.asarray(self.mask)))
+
+
+def make_friction_experiment(
+    time, velocity, friction_torque, *, position=None, start_time: float = 0.0
+) -> FrictionExperiment:
+    """Build a `FrictionExperiment` from 1-D arrays: time (s), velocity (rad/s), friction torque
+    (N·m) and optionally position (rad); `start_time` (s) since the session began."""
+    arrays = {"time": time, "velocity": velocity, "friction_torque": friction_torque}
+    if position is not None:
+        arrays["position"] = position
+    arrays = {k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()}
+    n = len(arrays["time"])
+    for k, v in arrays.items():
+        if v.ndim != 1 or len(v) != n:
+            raise ValueError(
+                f"`make_friction_experiment`: `{k}` must be 1-D with {n} samples like `time`, got shape {v.shape}."
+            )
+        if not np.all(np.isfinite(v)):
+            raise ValueError(
+                f"`make_friction_experiment`: `{k}` has NaN or inf at sample {int(np.argmin(np.isfinite(v)))}."
+            )
+    if n < 3:
+        raise ValueError(f"`make_friction_experiment`: need at least 3 samples, got {n}.")
+    return FrictionExperiment(
+        time=jnp.asarray(arrays["time"]),
+        velocity=jnp.asarray(arrays["velocity"]),
+        friction_torque=jnp.asarray(arrays["friction_torque"]),
+        position=jnp.asarray(arrays.get("position", np.zeros(n))),
+        has_position=jnp.asarray(1.0 if position is not None else 0.0),
+        start_time=jnp.asarray(float(start_time)),
+        mask=jnp.ones(n, dtype=bool),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Dataset
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Dataset:
+    """A loaded dataset folder.
+
+    **Attributes:**
+
+    - `name`: free text from `dataset.yaml` (the folder name when absent).
+    - `folder`: absolute path of the folder holding `dataset.yaml`.
+    - `drive`: the drive constants, `None` for a friction-only dataset without a `drive` block.
+      `load_inertia` is 0.0 when not given (allowed only without free-motion experiments).
+    - `experiments`: `Experiment` (constrained / free) or `FrictionExperiment`, in YAML order.
+    - `files`: each experiment's CSV path as written in `dataset.yaml` (relative to `folder`).
+    - `modes`: "constrained", "free" or "friction" per experiment.
+    - `start_times`: s since the session began, 0.0 when not given.
+    - `truth`: contents of an optional `truth.yaml` next to `dataset.yaml`, else `None`.
+    """
+
+    name: str
+    folder: pathlib.Path
+    drive: Drive | None
+    experiments: list
+    files: list[str]
+    modes: list[str]
+    start_times: list[float]
+    truth: dict | None = None
+
+    def __len__(self) -> int:
+        return len(self.experiments)
+
+    def indices(self, mode: str) -> list[int]:
+        """Indices of the experiments of `mode` ("constrained", "free" or "friction")."""
+        if mode not in MODES:
+            raise ValueError(f"`Dataset.indices`: mode must be one of {list(MODES)}, got {mode!r}.")
+        return [i for i, m in enumerate(self.modes) if m == mode]
+
+    def dynamic_indices(self) -> list[int]:
+        """Indices of the constrained and free-motion experiments (those a simulation can replay)."""
+        return [i for i, m in enumerate(self.modes) if m in ("constrained", "free")]
+
+    def friction_indices(self) -> list[int]:
+        """Indices of the friction experiments."""
+        return self.indices("friction")
+
+
+# ----------------------------------------------------------------------------------------------
+# YAML with line numbers, YAML 1.2 floats and no silently overwritten duplicate keys
+# ----------------------------------------------------------------------------------------------
+
+
+class _Map(dict):
+    """A dict that remembers the YAML line (1-based) of itself and of each key."""
+
+    line: int | None = None
+    lines: dict
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.lines = {}
+
+
+class _Loader(yaml.SafeLoader):
+    pass
+
+
+def _construct_mapping(loader: _Loader, node: yaml.MappingNode, deep: bool = False) -> _Map:
+    loader.flatten_mapping(node)
+    out = _Map()
+    out.line = node.start_mark.line + 1
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            duplicate = key in out
+        except TypeError as e:
+            raise yaml.constructor.ConstructorError(
+                "while constructing a mapping", node.start_mark, "found an unhashable key", key_node.start_mark
+            ) from e
+        if duplicate:
+            raise yaml.constructor.ConstructorError(
+                "while constructing a mapping",
+                node.start_mark,
+                f"found duplicate key {key!r} (the earlier value would be silently lost)",
+                key_node.start_mark,
+            )
+        out[key] = loader.construct_object(value_node, deep=deep)
+        out.lines[key] = key_node.start_mark.line + 1
+    return out
+
+
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+# YAML 1.1 (PyYAML) reads `1e-3` as a string; accept YAML 1.2 floats such as 1e-3 and 5E+2.
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
+
+
+def _plain(obj: Any) -> Any:
+    """Recursively turn `_Map` into plain dicts."""
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_plain(v) for v in obj]
+    return obj
+
+
+def _read_yaml(path: pathlib.Path, what: str) -> Any:
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise _error(path, None, f"{what} does not exist", "Check the path.") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise _error(path, None, f"{what} cannot be read ({e})", "Make it a readable UTF-8 text file.") from None
+    try:
+        return yaml.load(text, Loader=_Loader)
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else None
+        problem = " ".join(str(x) for x in (e.context, e.problem) if x)
+        raise _error(
+            path, where, f"YAML syntax error: {problem}", "Fix the YAML there (indentation, `key: value` pairs, quotes)."
+        ) from None
+    except yaml.YAMLError as e:
+        raise _error(path, None, f"YAML syntax error: {e}", "Fix the YAML syntax.") from None
+
+
+# ----------------------------------------------------------------------------------------------
+# Messages
+# ----------------------------------------------------------------------------------------------
+
+
+def _error(path, where: str | None, what: str, fix: str) -> DatasetError:
+    loc = str(path) + (f", {where}" if where else "")
+    msg = f"{loc}: {what}. {fix}"
+    return DatasetError(" ".join(msg.split()))
+
+
+def _yaml_where(mapping: Any, key: str | None, field: str) -> str:
+    """`line N (`field`)` for a key of a `_Map`, or just the field."""
+    line = None
+    if isinstance(mapping, _Map):
+        line = mapping.lines.get(key, mapping.line) if key is not None else mapping.line
+    return f"line {line} (`{field}`)" if line is not None else f"`{field}`"
+
+
+def _did_you_mean(word: str, candidates) -> str:
+    match = difflib.get_close_matches(word, [str(c) for c in candidates], n=1, cutoff=0.6)
+    return f" (did you mean `{match[0]}`?)" if match else ""
+
+
+def _misspelled(expected: str, present) -> str:
+    """For a missing key or column: point at a present one that looks like a misspelling of it."""
+    match = difflib.get_close_matches(expected, [str(c) for c in present], n=1, cutoff=0.6)
+    return f" (found `{match[0]}`: did you mean `{expected}`?)" if match else ""
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+# ----------------------------------------------------------------------------------------------
+# Loading
+# ----------------------------------------------------------------------------------------------
+
+
+def _dataset_yaml_path(folder_or_yaml) -> pathlib.Path:
+    p = pathlib.Path(folder_or_yaml).expanduser()
+    if p.is_dir():
+        y = p / DATASET_FILE
+        if not y.is_file():
+            raise _error(
+                y,
+                None,
+                f"no `{DATASET_FILE}` in the dataset folder",
+                f"Put a `{DATASET_FILE}` (name, drive, experiments; see SPEC.md section 2) in {p}, "
+                "or pass the path of the dataset YAML itself.",
+            )
+        return y.resolve()
+    if not p.exists():
+        raise _error(p, None, "dataset folder or YAML does not exist", "Check the path.")
+    return p.resolve()
+
+
+def _drive_number(doc: _Map, key: str, yaml_path, *, required: bool, positive: bool, why: str) -> float | None:
+    unit = {"gear_ratio": "N, -", "torque_constant": "Km, N·m/A", "load_inertia": "Jload, kg·m²"}[key]
+    drive = doc["drive"]
+    if key not in drive:
+        if required:
+            raise _error(
+                yaml_path,
+                _yaml_where(doc, "drive", "drive"),
+                f"`drive.{key}` ({unit}) is missing{_misspelled(key, [k for k in drive if k not in _DRIVE_KEYS])}; "
+                f"it is required {why}",
+                f"Add `{key}: <positive number>` to the `drive` block.",
+            )
+        return None
+    v = drive[key]
+    if not _is_number(v) or (positive and v <= 0) or (not positive and v < 0):
+        need = "a positive" if positive else "a non-negative"
+        raise _error(
+            yaml_path,
+            _yaml_where(drive, key, f"drive.{key}"),
+            f"`drive.{key}` ({unit}) is {v!r}, not {need} finite number" + (f" (required {why})" if positive else ""),
+            f"Set `{key}` to {need} number in SI units.",
+        )
+    return float(v)
+
+
+def _parse_drive(doc: _Map, yaml_path, modes: list[str]) -> Drive | None:
+    dynamic = [m for m in modes if m in ("constrained", "free")]
+    if "drive" not in doc or doc["drive"] is None:
+        if dynamic:
+            raise _error(
+                yaml_path,
+                "`drive`" + _misspelled("drive", [k for k in doc if k not in _TOP_KEYS]),
+                f"the `drive` block is missing but the dataset has {dynamic[0]} experiments",
+                "Add `drive:` with `gear_ratio` (N), `torque_constant` (Km, N·m/A) and, for free-motion "
+                "experiments, `load_inertia` (Jload, kg·m²). Only friction-only datasets may omit it.",
+            )
+        return None
+    drive = doc["drive"]
+    if not isinstance(drive, dict):
+        raise _error(
+            yaml_path,
+            _yaml_where(doc, "drive", "drive"),
+            f"`drive` must be a mapping, got {type(drive).__name__} {drive!r}",
+            "Write `drive:` followed by indented `gear_ratio: ...`, `torque_constant: ...`, `load_inertia: ...`.",
+        )
+    unknown = [k for k in drive if k not in _DRIVE_KEYS]
+    if unknown:
+        hints = ", ".join(f"`{k}`{_did_you_mean(str(k), _DRIVE_KEYS)}" for k in unknown)
+        warnings.warn(
+            f"{yaml_path}: ignoring unknown key(s) in the `drive` block: {hints}; known keys are {list(_DRIVE_KEYS)}.",
+            DatasetWarning,
+            stacklevel=4,
+        )
+    why = "because the dataset has constrained or free-motion experiments"
+    gear = _drive_number(doc, "gear_ratio", yaml_path, required=bool(dynamic), positive=True, why=why)
+    km = _drive_number(doc, "torque_constant", yaml_path, required=bool(dynamic), positive=True, why=why)
+    has_free = "free" in modes
+    why_j = "because the dataset has free-motion experiments"
+    jload = _drive_number(doc, "load_inertia", yaml_path, required=has_free, positive=has_free, why=why_j)
+    if gear is None or km is None:
+        return None  # friction-only dataset with an incomplete drive block: constants unused
+    return Drive(gear_ratio=gear, torque_constant=km, load_inertia=0.0 if jload is None else jload)
+
+
+def _resolve_member(folder: pathlib.Path, file: str, yaml_path, where: str) -> pathlib.Path:
+    """`folder/file`, refusing absolute paths and paths that escape `folder` (checked on the
+    normalised path, so symlinked data files inside the folder are fine)."""
+    rel = pathlib.PurePath(file)
+    if rel.is_absolute() or pathlib.PureWindowsPath(file).is_absolute() or file.startswith("~"):
+        raise _error(
+            yaml_path,
+            where,
+            f"file `{file}` is an absolute path",
+            "Give the CSV path relative to the folder holding dataset.yaml, and keep the CSV inside that folder.",
+        )
+    full = pathlib.Path(os.path.normpath(folder / rel))
+    try:
+        full.relative_to(folder)
+    except ValueError:
+        raise _error(
+            yaml_path,
+            where,
+            f"file `{file}` resolves to {full}, outside the dataset folder {folder}",
+            "Move the CSV into the dataset folder (or a subfolder) and give its path relative to dataset.yaml.",
+        ) from None
+    if full == folder:
+        raise _error(yaml_path, where, f"file `{file}` names the dataset folder itself", "Name a CSV file.")
+    return full
+
+
+def load_dataset(folder_or_yaml: str | os.PathLike) -> Dataset:
+    """Load and validate a dataset folder (SPEC.md section 2).
+
+    **Arguments:**
+
+    - `folder_or_yaml`: the folder holding `dataset.yaml`, or the path of the dataset YAML.
+
+    **Returns:** a `Dataset`. Raises `DatasetError` on any bad input; warns (`DatasetWarning`)
+    once per CSV that has extra columns, which are ignored.
+    """
+    yaml_path = _dataset_yaml_path(folder_or_yaml)
+    folder = yaml_path.parent
+    doc = _read_yaml(yaml_path, "dataset YAML")
+    if not isinstance(doc, dict):
+        raise _error(
+            yaml_path,
+            None,
+            f"the top level must be a mapping with `name`, `drive` and `experiments`, got {type(doc).__name__}",
+            "Write `name: ...`, `drive:` and `experiments:` at the top level (see SPEC.md section 2).",
+        )
+    for k in doc:
+        if k not in _TOP_KEYS and _did_you_mean(str(k), _TOP_KEYS):
+            warnings.warn(
+                f"{yaml_path}: ignoring unknown top-level key `{k}`{_did_you_mean(str(k), _TOP_KEYS)}.",
+                DatasetWarning,
+                stacklevel=2,
+            )
+
+    # --- experiments list
+    if "experiments" not in doc:
+        raise _error(
+            yaml_path,
+            "`experiments`" + _misspelled("experiments", [k for k in doc if k not in _TOP_KEYS]),
+            "the `experiments` list is missing",
+            "Add `experiments:` with one `- file: <csv>` / `mode: constrained|free|friction` entry per CSV.",
+        )
+    entries = doc["experiments"]
+    if not isinstance(entries, list):
+        raise _error(
+            yaml_path,
+            _yaml_where(doc, "experiments", "experiments"),
+            f"`experiments` must be a list, got {type(entries).__name__}",
+            "Write each experiment as a list item `- file: <csv>` with `mode: ...` under it.",
+        )
+    if not entries:
+        raise _error(
+            yaml_path,
+            _yaml_where(doc, "experiments", "experiments"),
+            "the `experiments` list is empty",
+            "Add at least one `- file: <csv>` / `mode: ...` entry.",
+        )
+
+    modes, files, starts, paths = [], [], [], []
+    seen: dict[pathlib.Path, int] = {}
+    for i, entry in enumerate(entries):
+        field = f"experiments[{i}]"
+        if not isinstance(entry, dict):
+            raise _error(
+                yaml_path,
+                _yaml_where(doc, "experiments", field),
+                f"experiment entry {i} is {entry!r}, not a mapping",
+                "Write each entry as `- file: <csv>` followed by `mode: constrained|free|friction`.",
+            )
+        unknown = [k for k in entry if k not in _ENTRY_KEYS]
+        if unknown:
+            hints = ", ".join(f"`{k}`{_did_you_mean(str(k), _ENTRY_KEYS)}" for k in unknown)
+            warnings.warn(
+                f"{yaml_path}, {_yaml_where(entry, unknown[0], field)}: ignoring unknown key(s) {hints}; "
+                f"known keys are {list(_ENTRY_KEYS)}.",
+                DatasetWarning,
+                stacklevel=2,
+            )
+        for key, fix in (
+            ("file", "Add `file: <csv path relative to dataset.yaml>`."),
+            ("mode", f"Add `mode:` with one of {', '.join(MODES)}."),
+        ):
+            if key not in entry or entry[key] is None:
+                raise _error(
+                    yaml_path,
+                    _yaml_where(entry, None, f"{field}.{key}"),
+                    f"experiment entry {i} has no `{key}`{_misspelled(key, unknown)}",
+                    fix,
+                )
+        file, mode = entry["file"], entry["mode"]
+        if not isinstance(file, str) or not file.strip():
+            raise _error(
+                yaml_path,
+                _yaml_where(entry, "file", f"{field}.file"),
+                f"`file` must be a non-empty path string, got {file!r}",
+                "Give the CSV path relative to dataset.yaml.",
+            )
+        if mode not in MODES:
+            raise _error(
+                yaml_path,
+                _yaml_where(entry, "mode", f"{field}.mode"),
+                f"unknown mode {mode!r}{_did_you_mean(str(mode), MODES)}",
+                f"Use one of: {', '.join(MODES)}.",
+            )
+        start = entry.get("start_time", 0.0)
+        if start is None:
+            start = 0.0
+        if not _is_number(start) or start < 0:
+            raise _error(
+                yaml_path,
+                _yaml_where(entry, "start_time", f"{field}.start_time"),
+                f"`start_time` is {start!r}, not a finite non-negative number",
+                "Give the seconds since the session began (e.g. `start_time: 120.0`), or leave it out for 0.",
+            )
+        path = _resolve_member(folder, file, yaml_path, _yaml_where(entry, "file", f"{field}.file"))
+        if path in seen:
+            raise _error(
+                yaml_path,
+                _yaml_where(entry, "file", f"{field}.file"),
+                f"file `{file}` is listed twice (also as experiments[{seen[path]}])",
+                "List each CSV once; copy the file if you really mean to use the same record twice.",
+            )
+        seen[path] = i
+        if not path.is_file():
+            raise _error(
+                path,
+                f"named in {yaml_path} {_yaml_where(entry, 'file', f'{field}.file')}",
+                "the CSV file does not exist",
+                "Fix the `file` path (relative to dataset.yaml) or add the file.",
+            )
+        modes.append(mode)
+        files.append(file)
+        starts.append(float(start))
+        paths.append(path)
+
+    drive = _parse_drive(doc, yaml_path, modes)
+
+    experiments = []
+    for path, mode, start in zip(paths, modes, starts):
+        cols = _read_csv(path, mode)
+        if mode == "friction":
+            exp = make_friction_experiment(
+                cols["time"], cols["velocity"], cols["friction_torque"], position=cols.get("position"), start_time=start
+            )
+        else:
+            exp = make_experiment(
+                cols["time"],
+                cols["current"],
+                cols["torque"],
+                cols["motor_velocity"],
+                mode=mode,
+                output_position=cols.get("output_position"),
+                motor_position=cols.get("motor_position"),
+                start_time=start,
+            )
+        experiments.append(exp)
+
+    truth = None
+    truth_path = folder / TRUTH_FILE
+    if truth_path.is_file():
+        truth = _read_yaml(truth_path, "truth YAML")
+        if truth is not None and not isinstance(truth, dict):
+            raise _error(
+                truth_path,
+                None,
+                f"the top level must be a mapping, got {type(truth).__name__}",
+                "Write `key: value` pairs at the top level, or remove truth.yaml.",
+            )
+        truth = _plain(truth) if truth is not None else None
+
+    name = doc.get("name")
+    return Dataset(
+        name=folder.name if name is None else str(name),
+        folder=folder,
+        drive=drive,
+        experiments=experiments,
+        files=files,
+        modes=modes,
+        start_times=starts,
+        truth=truth,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# CSV
+# ----------------------------------------------------------------------------------------------
+
+
+def _is_float(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
+    """Read one experiment CSV; returns the required and present optional columns as float64."""
+    required, optional = COLUMNS[mode]
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            header = None
+            rows: list[list[str]] = []
+            lines: list[int] = []
+            for row in reader:
+                if not row or (len(row) == 1 and not row[0].strip()):
+                    continue  # blank line: no data in it
+                if header is None:
+                    header = row
+                    header_line = reader.line_num
+                    continue
+                rows.append(row)
+                lines.append(reader.line_num)
+    except UnicodeDecodeError as e:
+        raise _error(path, None, f"not UTF-8 text ({e})", "Save the CSV as UTF-8 (or plain ASCII).") from None
+    except csv.Error as e:
+        raise _error(path, f"line {reader.line_num}", f"malformed CSV ({e})", "Fix the quoting on that line.") from None
+    except OSError as e:
+        raise _error(path, None, f"cannot be read ({e})", "Check the file's permissions.") from None
+
+    if header is None:
+        raise _error(path, None, "the CSV is empty", f"Write a header row ({', '.join(required)}) and the samples.")
+    names = [h.strip() for h in header]
+    if all(_is_float(h) for h in names):
+        raise _error(
+            path,
+            f"line {header_line}",
+            "there is no header row (the first line holds numbers)",
+            f"Add a header row naming the columns, e.g. `{','.join(required)}`.",
+        )
+    for j, n in enumerate(names):
+        if not n:
+            raise _error(
+                path,
+                f"line {header_line}, column {j + 1}",
+                "empty column name in the header",
+                "Name every column (or remove the empty one).",
+            )
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise _error(
+            path,
+            f"line {header_line}, column(s) " + ", ".join(f"`{d}`" for d in dupes),
+            "duplicate column name(s) in the header",
+            "Rename or remove the duplicates so each column appears once.",
+        )
+
+    known = set(required) | set(optional)
+    extra = [n for n in names if n not in known]
+    missing = [n for n in required if n not in names]
+    if missing:
+        parts = [f"`{m}` ({_UNITS[m]}){_misspelled(m, extra)}" for m in missing]
+        hint = ""
+        if len(names) == 1 and any(c in names[0] for c in ";\t|"):
+            hint = " The header looks like it uses a delimiter other than a comma; hdjax reads comma-separated files."
+        raise _error(
+            path,
+            f"line {header_line} (header)",
+            f"{mode} experiments need column(s) {', '.join(parts)}, which the header lacks; "
+            f"found {', '.join(f'`{n}`' for n in names)}",
+            f"Rename or add the column(s); a {mode} CSV needs {', '.join(required)}"
+            + (f" and may have {', '.join(optional)}" if optional else "")
+            + "."
+            + hint,
+        )
+    if extra:
+        hints = ", ".join(f"`{n}`{_did_you_mean(n, [o for o in optional if o not in names])}" for n in extra)
+        warnings.warn(
+            f"{path}: ignoring column(s) not used by {mode} experiments: {hints}.",
+            DatasetWarning,
+            stacklevel=3,
+        )
+
+    used = [n for n in names if n in known]
+    index = {n: names.index(n) for n in used}
+    data = np.empty((len(rows), len(used)))
+    for r, (row, line) in enumerate(zip(rows, lines)):
+        if len(row) != len(names):
+            raise _error(
+                path,
+                f"line {line}",
+                f"the row has {len(row)} field(s) but the header has {len(names)}",
+                "Give every row one value per header column (check for stray commas or decimal commas).",
+            )
+        for c, n in enumerate(used):
+            cell = row[index[n]].strip()
+            try:
+                v = float(cell)
+            except ValueError:
+                what = "empty cell" if not cell else f"non-numeric value {cell!r}"
+                raise _error(
+                    path,
+                    f"line {line}, column `{n}`",
+                    what,
+                    f"Write a number in SI units ({_UNITS[n]}) with a '.' decimal point; "
+                    "hdjax does not drop or fill in samples.",
+                ) from None
+            if not math.isfinite(v):
+                raise _error(
+                    path,
+                    f"line {line}, column `{n}`",
+                    f"value {cell!r} is {'NaN' if math.isnan(v) else 'inf'}",
+                    "Replace it with a measured value or cut the record into valid pieces; "
+                    "hdjax does not drop or interpolate samples.",
+                )
+            data[r, c] = v
+
+    cols = {n: data[:, c] for c, n in enumerate(used)}
+    _check_time(path, cols["time"], lines)
+    return cols
+
+
+def _check_time(path, time: np.ndarray, lines: list[int]) -> None:
+    """At least 3 samples, strictly increasing, uniform step within `_MAX_JITTER`."""
+    if len(time) < 3:
+        raise _error(
+            path,
+            "column `time`",
+            f"only {len(time)} data row(s)",
+            "Give at least 3 samples (a real record has many more).",
+        )
+    dt = np.diff(time)
+    bad = np.flatnonzero(dt <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise _error(
+            path,
+            f"line {lines[k]}, column `time`",
+            f"time is not strictly increasing ({time[k - 1]!r} s on line {lines[k - 1]}, then {time[k]!r} s)",
+            "Sort the rows by time and remove repeated samples; split separate records into separate files.",
+        )
+    step = float(np.median(dt))
+    jitter = np.abs(dt - step) / step
+    bad = np.flatnonzero(jitter > _MAX_JITTER)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise _error(
+            path,
+            f"line {lines[k]}, column `time`",
+            f"uneven time step: {dt[k - 1]!r} s from line {lines[k - 1]}, against a median step of {step!r} s "
+            f"({100 * jitter[k - 1]:.3g} % off; {bad.size} step(s) exceed the {100 * _MAX_JITTER:g} % tolerance)",
+            "Resample the record onto a uniform grid yourself or split it at the gap into separate files; "
+            "hdjax never resamples.",
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# Configs and command targets
+# ----------------------------------------------------------------------------------------------
+
+
+def load_config(path: str | os.PathLike) -> dict:
+    """Read a config YAML: a mapping with a `dataset:` key (folder path, relative to the config
+    file's own folder) plus free-form options. Returns a plain dict with `dataset` resolved to an
+    absolute `pathlib.Path` (its existence is not checked here)."""
+    p = pathlib.Path(path).expanduser()
+    if not p.is_file():
+        raise _error(p, None, "config file does not exist", "Check the path.")
+    doc = _read_yaml(p, "config YAML")
+    if not isinstance(doc, dict):
+        raise _error(
+            p,
+            None,
+            f"the top level must be a mapping, got {type(doc).__name__}",
+            "Write `dataset: <folder>` and the options as `key: value` pairs.",
+        )
+    if "dataset" not in doc or doc["dataset"] is None:
+        raise _error(
+            p,
+            "`dataset`" + _misspelled("dataset", list(doc)),
+            "the config has no `dataset` key",
+            "Add `dataset: <folder>` (relative to this config file's folder).",
+        )
+    ds = doc["dataset"]
+    if not isinstance(ds, (str, os.PathLike)) or not str(ds).strip():
+        raise _error(
+            p,
+            _yaml_where(doc, "dataset", "dataset"),
+            f"`dataset` must be a folder path string, got {ds!r}",
+            "Write `dataset: <folder>` (relative to this config file's folder).",
+        )
+    out = _plain(doc)
+    out["dataset"] = (p.resolve().parent / pathlib.Path(ds).expanduser()).resolve()
+    return out
+
+
+def resolve_target(target: str | os.PathLike) -> tuple[Dataset, dict]:
+    """A command's `TARGET` to `(dataset, config)`: a dataset folder or a dataset YAML (one with
+    `experiments`) gives `config = {}`; any other YAML is a config naming the dataset folder."""
+    p = pathlib.Path(target).expanduser()
+    if p.is_dir():
+        return load_dataset(p), {}
+    if not p.exists():
+        raise _error(p, None, "target does not exist", "Pass a dataset folder, its dataset.yaml, or a config YAML.")
+    if p.suffix.lower() not in (".yaml", ".yml"):
+        raise _error(
+            p,
+            None,
+            "target is neither a folder nor a .yaml/.yml file",
+            "Pass a dataset folder, its dataset.yaml, or a config YAML.",
+        )
+    doc = _read_yaml(p, "YAML")
+    if isinstance(doc, dict) and "experiments" in doc:
+        return load_dataset(p), {}
+    config = load_config(p)
+    folder = config["dataset"]
+    if not folder.exists():
+        raise _error(
+            p,
+            _yaml_where(doc, "dataset", "dataset"),
+            f"the dataset folder {folder} does not exist",
+            "Fix `dataset:` (a path relative to this config file's folder).",
+        )
+    return load_dataset(folder), config
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing
+# ----------------------------------------------------------------------------------------------
+
+
+def _atomic_write(path: pathlib.Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _yaml_value(x: Any) -> Any:
+    """Plain Python values for `yaml.safe_dump` (arrays to lists, numpy/JAX scalars to floats)."""
+    if isinstance(x, dict):
+        return {str(k): _yaml_value(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_yaml_value(v) for v in x]
+    if x is None or isinstance(x, (str, bool)):
+        return str(x) if isinstance(x, str) else x
+    if isinstance(x, int):
+        return int(x)
+    if isinstance(x, float):
+        return float(x)  # also np.float64, which the safe dumper refuses
+    if isinstance(x, os.PathLike):
+        return os.fspath(x)
+    if hasattr(x, "to_dict"):
+        return _yaml_value(x.to_dict())
+    a = np.asarray(x)
+    if a.ndim == 0:
+        return a.item()
+    return a.tolist()
+
+
+def _csv_text(columns: dict[str, np.ndarray]) -> str:
+    names = list(columns)
+    data = np.column_stack([columns[n] for n in names])
+    # repr() of a Python float is the shortest string that reads back to the same float.
+    body = "\n".join(",".join(map(repr, row)) for row in data.tolist())
+    return ",".join(names) + "\n" + body + "\n"
+
+
+def write_dataset(
+    folder: str | os.PathLike,
+    name: str,
+    drive: Drive | None,
+    experiments: list,
+    modes: list[str],
+    files: list[str],
+    start_times: list[float] | None = None,
+    truth: dict | None = None,
+) -> pathlib.Path:
+    """Write a dataset folder that `load_dataset` reads back exactly (floats written with `repr`).
+
+    **Arguments:**
+
+    - `folder`: the dataset folder (created if needed).
+    - `name`: free text for `dataset.yaml`.
+    - `drive`: drive constants; may be `None` only when every experiment is friction.
+      `load_inertia` is written when positive (and must be, with free-motion experiments).
+    - `experiments`: `Experiment` (constrained / free) or `FrictionExperiment`, unbatched;
+      padding (`mask` False) is dropped.
+    - `modes`: "constrained", "free" or "friction" per experiment, matching its type.
+    - `files`: CSV paths relative to `folder`, unique.
+    - `start_times`: s since the session began; default each experiment's `start_time`.
+    - `truth`: optional free-form mapping written to `truth.yaml` (arrays become lists).
+
+    CSV columns: `time,current,motor_velocity,torque[,output_position][,motor_position]` for
+    constrained / free (free always has `output_position`; the optional ones appear when measured),
+    `time,velocity,friction_torque[,position]` for friction. Each file is written atomically
+    (temporary name, then rename); `dataset.yaml` last. Returns the folder path.
+    """
+    folder = pathlib.Path(folder).expanduser().resolve()
+    n = len(experiments)
+    if len(modes) != n or len(files) != n or (start_times is not None and len(start_times) != n):
+        raise DatasetError(
+            f"`write_dataset` ({folder}): got {n} experiments, {len(modes)} modes, {len(files)} files"
+            + (f", {len(start_times)} start times" if start_times is not None else "")
+            + "; give one of each per experiment."
+        )
+    if n == 0:
+        raise DatasetError(f"`write_dataset` ({folder}): no experiments given; a dataset needs at least one.")
+    yaml_path = folder / DATASET_FILE
+    targets = []
+    for i, (exp, mode, file) in enumerate(zip(experiments, modes, files)):
+        where = f"`files[{i}]`"
+        if mode not in MODES:
+            raise _error(yaml_path, f"`modes[{i}]`", f"unknown mode {mode!r}", f"Use one of: {', '.join(MODES)}.")
+        want = FrictionExperiment if mode == "friction" else Experiment
+        if not isinstance(exp, want):
+            raise _error(
+                yaml_path,
+                f"`experiments[{i}]`",
+                f"mode {mode!r} needs a {want.__name__}, got {type(exp).__name__}",
+                "Pass matching experiments and modes.",
+            )
+        if mode != "friction" and (float(exp.free) == 1.0) != (mode == "free"):
+            raise _error(
+                yaml_path,
+                f"`modes[{i}]`",
+                f"mode {mode!r} disagrees with the experiment's `free` flag {float(exp.free)}",
+                "Pass the mode the experiment was built with.",
+            )
+        if not isinstance(file, str) or not file.strip():
+            raise _error(yaml_path, where, f"file name {file!r} is not a non-empty string", "Give a relative path.")
+        path = _resolve_member(folder, file, yaml_path, where)
+        if path in targets:
+            raise _error(yaml_path, where, f"file `{file}` is given twice", "Give each experiment its own file.")
+        targets.append(path)
+    if drive is None and any(m != "friction" for m in modes):
+        raise DatasetError(
+            f"`write_dataset` ({yaml_path}): `drive` is None but there are constrained or free experiments; "
+            "pass a `Drive`."
+        )
+    if drive is not None and "free" in modes and not float(drive.load_inertia) > 0:
+        raise DatasetError(
+            f"`write_dataset` ({yaml_path}): `drive.load_inertia` is {float(drive.load_inertia)!r} but there are "
+            "free-motion experiments; give a positive load inertia (kg·m²)."
+        )
+
+    entries = []
+    for i, (exp, mode, file, path) in enumerate(zip(experiments, modes, files, targets)):
+        mask = np.asarray(exp.mask, dtype=bool)
+        if mask.ndim != 1:
+            raise _error(
+                yaml_path, f"`experiments[{i}]`", "the experiment is batched", "Unstack it into single experiments."
+            )
+
+        def col(a, mask=mask):
+            return np.asarray(a, dtype=np.float64)[mask]
+
+        if mode == "friction":
+            cols = {"time": col(exp.time), "velocity": col(exp.velocity), "friction_torque": col(exp.friction_torque)}
+            if float(exp.has_position):
+                cols["position"] = col(exp.position)
+        else:
+            cols = {
+                "time": col(exp.time),
+                "current": col(exp.current),
+                "motor_velocity": col(exp.motor_velocity),
+                "torque": col(exp.torque),
+            }
+            if mode == "free" or float(exp.has_output_position):
+                cols["output_position"] = col(exp.output_position)
+            if float(exp.has_motor_position):
+                cols["motor_position"] = col(exp.motor_position)
+        for k, v in cols.items():
+            if not np.all(np.isfinite(v)):
+                raise _error(
+                    path,
+                    f"column `{k}`",
+                    f"refusing to write NaN or inf (sample {int(np.argmin(np.isfinite(v)))})",
+                    "Pass finite data.",
+                )
+        _check_time(path, cols["time"], list(range(2, len(cols["time"]) + 2)))
+        _atomic_write(path, _csv_text(cols))
+        start = float(exp.start_time) if start_times is None else float(start_times[i])
+        entry = {"file": file, "mode": mode}
+        if start != 0.0:
+            entry["start_time"] = start
+        entries.append(entry)
+
+    doc: dict[str, Any] = {"name": str(name)}
+    if drive is not None:
+        d = {"gear_ratio": float(drive.gear_ratio), "torque_constant": float(drive.torque_constant)}
+        if float(drive.load_inertia) > 0:
+            d["load_inertia"] = float(drive.load_inertia)
+        doc["drive"] = d
+    doc["experiments"] = entries
+    if truth is not None:
+        _atomic_write(folder / TRUTH_FILE, yaml.safe_dump(_yaml_value(truth), sort_keys=False, allow_unicode=True))
+    _atomic_write(yaml_path, yaml.safe_dump(doc, sort_keys=False, allow_unicode=True))
+    return folder

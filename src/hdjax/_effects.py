@@ -1,0 +1,141 @@
+r"""Model extensions beyond the paper (SPEC §4), as real terms inside the plant.
+
+Each effect has a name from the SPEC vocabulary and parameters in SI units. Periodic effects are
+written with cosine/sine coefficients over orders $k = 1..K$ (cycles per wave-generator turn):
+$\sum_k s_k \sin(k\theta_m) + c_k \cos(k\theta_m)$, equivalent to $\sum_k a_k\sin(k\theta_m+\varphi_k)$
+with $a_k = \sqrt{s_k^2 + c_k^2}$, $\varphi_k = \mathrm{atan2}(c_k, s_k)$; this form is linear in
+the coefficients, which keeps the fit well conditioned.
+
+| effect | term |
+|---|---|
+| `kinematic_error` | true torsion $\Delta\theta = \theta_m/N - \theta_o + e(\theta_m)$, $e$ periodic (rad) |
+| `torque_sensor_ripple` | measured $T$ += periodic (N·m); dynamics untouched |
+| `cogging` | motor torque $K_m i$ += periodic (N·m) |
+| `position_dependent_friction` | Coulomb part × (1 + periodic) (-) |
+| `nonlinear_stiffness` | $T_k = K_1\Delta\theta + K_3\Delta\theta^3$ ($K_3$ in N·m/rad³) |
+| `lost_motion` | $T_k = K_1\,\mathrm{deadzone}(\Delta\theta, \delta)$ ($\delta$ rad, smooth) |
+| `load_dependent_friction` | Coulomb += $\mu |T| / N$ ($\mu$ -) |
+| `thermal_drift` | viscous × $(1 + \beta e^{-t_{session}/\tau})$ |
+| `input_delay` | $K_m i(t - \tau_d)$ ($\tau_d$ s) |
+| `rate_independent_hysteresis` | Dahl state $z$: $\dot z = (\dot{\Delta\theta}/\sigma)(1 - z\,\mathrm{sign}(\dot{\Delta\theta}))$, $T$ += $T_h z$ |
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._smooth import smooth_sign
+
+
+MAX_ORDER = 8
+PERIODIC = ("kinematic_error", "torque_sensor_ripple", "cogging", "position_dependent_friction")
+SCALAR = {
+    "nonlinear_stiffness": ("K3",),
+    "lost_motion": ("backlash",),
+    "load_dependent_friction": ("mu",),
+    "thermal_drift": ("beta", "tau"),
+    "input_delay": ("delay",),
+    "rate_independent_hysteresis": ("Th", "sigma"),
+}
+EFFECT_NAMES = PERIODIC + tuple(SCALAR)
+
+
+def _zeros():
+    return jnp.zeros(MAX_ORDER)
+
+
+def _as_float(x):
+    return jnp.asarray(x, dtype=float)
+
+
+class Effects(eqx.Module):
+    """Parameters of the active model extensions; `active` (static) names the effects switched on.
+
+    Periodic effects: `<name>_sin`, `<name>_cos` arrays of length `MAX_ORDER` (order k at index
+    k−1). Scalars as in the table of `hdjax._effects`. Inactive fields are ignored.
+    """
+
+    active: frozenset = eqx.field(static=True, default=frozenset())
+    kinematic_error_sin: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    kinematic_error_cos: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    torque_sensor_ripple_sin: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    torque_sensor_ripple_cos: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    cogging_sin: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    cogging_cos: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    position_dependent_friction_sin: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    position_dependent_friction_cos: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    K3: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    backlash: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    mu: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    beta: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    tau: Float[Array, ""] = eqx.field(default=300.0, converter=_as_float)
+    delay: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    Th: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    sigma: Float[Array, ""] = eqx.field(default=1e-4, converter=_as_float)
+
+    def __check_init__(self):
+        unknown = set(self.active) - set(EFFECT_NAMES)
+        if unknown:
+            raise ValueError(f"`Effects`: unknown effect(s) {sorted(unknown)}; known: {list(EFFECT_NAMES)}.")
+
+    def periodic(self, name: str, theta_m):
+        """$\\sum_k s_k\\sin(k\\theta_m) + c_k\\cos(k\\theta_m)$ for a periodic effect (0 if inactive)."""
+        if name not in self.active:
+            return jnp.zeros_like(theta_m)
+        k = jnp.arange(1, MAX_ORDER + 1, dtype=float)
+        ang = k * jnp.asarray(theta_m)[..., None]
+        s = getattr(self, f"{name}_sin")
+        c = getattr(self, f"{name}_cos")
+        return jnp.sum(s * jnp.sin(ang) + c * jnp.cos(ang), axis=-1)
+
+    def periodic_rate(self, name: str, theta_m, omega_m):
+        """Time derivative of `periodic(name, θm)` along θm' = ωm."""
+        if name not in self.active:
+            return jnp.zeros_like(theta_m)
+        k = jnp.arange(1, MAX_ORDER + 1, dtype=float)
+        ang = k * jnp.asarray(theta_m)[..., None]
+        s = getattr(self, f"{name}_sin")
+        c = getattr(self, f"{name}_cos")
+        return jnp.sum(k * (s * jnp.cos(ang) - c * jnp.sin(ang)), axis=-1) * omega_m
+
+    def amplitudes(self, name: str):
+        """(orders, amplitudes, phases) of a periodic effect for reports, as numpy-ready arrays."""
+        s = getattr(self, f"{name}_sin")
+        c = getattr(self, f"{name}_cos")
+        return jnp.arange(1, MAX_ORDER + 1), jnp.hypot(s, c), jnp.arctan2(c, s)
+
+    def with_periodic(self, name: str, order: int, amplitude: float, phase: float = 0.0) -> "Effects":
+        """A copy with `a·sin(k·θm + φ)` added to effect `name` at order `k`, and the effect switched on."""
+        s = getattr(self, f"{name}_sin").at[order - 1].add(amplitude * jnp.cos(phase))
+        c = getattr(self, f"{name}_cos").at[order - 1].add(amplitude * jnp.sin(phase))
+        new = eqx.tree_at(lambda e: (getattr(e, f"{name}_sin"), getattr(e, f"{name}_cos")), self, (s, c))
+        return eqx.tree_at(lambda e: e.active, new, frozenset(self.active | {name}))
+
+    def with_values(self, name: str, **values) -> "Effects":
+        """A copy with the scalar parameters of effect `name` set and the effect switched on."""
+        allowed = SCALAR[name]
+        bad = set(values) - set(allowed)
+        if bad:
+            raise ValueError(f"`Effects.with_values`: {name} takes {allowed}, got {sorted(bad)}.")
+        new = self
+        for k, v in values.items():
+            new = eqx.tree_at(lambda e: getattr(e, k), new, jnp.asarray(v, dtype=float))
+        return eqx.tree_at(lambda e: e.active, new, frozenset(self.active | {name}))
+
+
+def stiffness_torque(K1, torsion, effects: Effects):
+    """Elastic torque $T_k(\\Delta\\theta)$ (N·m): linear, or with cubic / dead-zone extensions."""
+    x = torsion
+    if "lost_motion" in effects.active:
+        d = jnp.abs(effects.backlash)
+        s = d / 20.0 + 1e-9
+        x = s * (jnp.logaddexp(0.0, (x - d) / s) - jnp.logaddexp(0.0, (-x - d) / s))
+    t = K1 * x
+    if "nonlinear_stiffness" in effects.active:
+        t = t + effects.K3 * x**3
+    return t
+
+
+def dahl_rate(z, torsion_rate, effects: Effects, scale):
+    """Dahl hysteresis state derivative $\\dot z = (\\dot{\\Delta\\theta}/\\sigma)(1 - z\\,\\mathrm{sign}(\\dot{\\Delta\\theta}))$."""
+    return torsion_rate / jnp.abs(effects.sigma) * (1.0 - z * smooth_sign(torsion_rate, scale))
