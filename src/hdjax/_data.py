@@ -888,11 +888,12 @@ def _yaml_value(x: Any) -> Any:
     return a.tolist()
 
 
-def _csv_text(columns: dict[str, np.ndarray]) -> str:
+def _csv_text(columns: dict[str, np.ndarray], digits: int | None = None) -> str:
     names = list(columns)
     data = np.column_stack([columns[n] for n in names])
     # repr() of a Python float is the shortest string that reads back to the same float.
-    body = "\n".join(",".join(map(repr, row)) for row in data.tolist())
+    fmt = repr if digits is None else f"{{:.{int(digits)}g}}".format
+    body = "\n".join(",".join(map(fmt, row)) for row in data.tolist())
     return ",".join(names) + "\n" + body + "\n"
 
 
@@ -905,8 +906,9 @@ def write_dataset(
     files: list[str],
     start_times: list[float] | None = None,
     truth: dict | None = None,
+    digits: int | None = None,
 ) -> pathlib.Path:
-    """Write a dataset folder that `load_dataset` reads back exactly (floats written with `repr`).
+    """Write a dataset folder that `load_dataset` reads back (exactly with the default `repr` floats).
 
     **Arguments:**
 
@@ -920,6 +922,8 @@ def write_dataset(
     - `files`: CSV paths relative to `folder`, unique.
     - `start_times`: s since the session began; default each experiment's `start_time`.
     - `truth`: optional free-form mapping written to `truth.yaml` (arrays become lists).
+    - `digits`: significant digits of the CSV values (e.g. 7 for compact files); default `None`
+      writes `repr` floats, which read back exactly.
 
     CSV columns: `time,current,motor_velocity,torque[,output_position][,motor_position]` for
     constrained / free (free always has `output_position`; the optional ones appear when measured),
@@ -1009,7 +1013,7 @@ def write_dataset(
                     "Pass finite data.",
                 )
         _check_time(path, cols["time"], list(range(2, len(cols["time"]) + 2)))
-        _atomic_write(path, _csv_text(cols))
+        _atomic_write(path, _csv_text(cols, digits))
         start = float(exp.start_time) if start_times is None else float(start_times[i])
         entry = {"file": file, "mode": mode}
         if start != 0.0:

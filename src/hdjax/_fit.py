@@ -103,7 +103,15 @@ def noise_levels(batch: Experiment) -> jax.Array:
                 continue
             xe = x[e][m[e]]
             if len(xe) > 10:
-                vals.append(np.std(np.diff(xe, 2)) / np.sqrt(6.0))
+                v = np.std(np.diff(xe, 2)) / np.sqrt(6.0)
+                if name == "output_position":
+                    # a quantised encoder on a slow signal has mostly-zero second differences: floor
+                    # at the quantisation noise q/sqrt(12), q = smallest non-zero step
+                    steps = np.abs(np.diff(xe))
+                    steps = steps[steps > 0]
+                    if len(steps):
+                        v = max(v, float(np.min(steps)) / np.sqrt(12.0))
+                vals.append(v)
         v = float(np.median(vals)) if vals else 1.0
         out.append(max(v, 1e-12))
     return jnp.asarray(out)
