@@ -49,18 +49,10 @@ def test_trajectory_fit_recovers_truth(campaign):
     for k in ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn"):
         rel = abs(float(getattr(res.params, k)) / float(getattr(p, k)) - 1)
         assert rel < 0.05, (k, rel)  # issue: within 5 % of the truth
-    assert all(np.isfinite(v) and v > 0 for v in res.std_error.values())
-
-
-@pytest.mark.xfail(strict=True, reason="known shortfall: on this 0.6 s campaign one Stribeck amplitude is off by "
-                   "~67 % after 15 LM steps (issue 3 left open)")
-def test_trajectory_fit_recovers_stribeck(campaign):
-    p, drive, exps, _ = campaign
-    start = identify_paper(exps, drive).parameters()
-    res = fit_parameters(start, drive, hdjax.stack_experiments(exps), max_steps=15)
     for k in ("Tssp1", "Tssn1"):
         rel = abs(float(getattr(res.params, k)) / float(getattr(p, k)) - 1)
         assert rel < 0.25, (k, rel)  # issue: Stribeck amplitudes within 25 %
+    assert all(np.isfinite(v) and v > 0 for v in res.std_error.values())
 
 
 def test_fit_workflow_writes_spec_keys(campaign, tmp_path):

@@ -15,9 +15,9 @@ delta method.
 Free motion has a rigid-body mode: the output *position* integrates any velocity error. The fit
 stays well posed because (1) each simulation starts from the measured state (local line fits of
 the first samples, `hdjax.initial_state`), (2) the wave-generator velocity — not an integrated
-position — carries the rigid-body information, and (3) the output-position channel is weighted by
-its (small, quantisation-level) noise only where it is measured, so a drift is a smooth, finite
-residual that LM can reduce rather than a growing unknown offset.
+position — carries the rigid-body information, and (3) the output-position residual is projected off the rigid-body
+components {offset, constant velocity} of each experiment before weighting, so an initial-state
+error cannot dominate it; what remains (torsion and acceleration history) carries the information.
 """
 
 import dataclasses
@@ -131,6 +131,13 @@ def experiment_residuals(p: Parameters, drive: Drive, exp: Experiment, sigma, si
         ]
     )
     r = jnp.where(m[None, :], r, 0.0)
+    # rigid-body mode: project the output-position residual off {1, t} (offset and constant
+    # velocity), which an initial-state error adds and which carries no parameter information
+    w = m.astype(float)
+    tt = (exp.time - exp.time[0]) * w
+    basis = jnp.stack([w, tt - jnp.sum(tt) / jnp.maximum(jnp.sum(w), 1.0) * w])
+    coef = (basis @ r[2]) / jnp.maximum(jnp.sum(basis**2, axis=1), 1e-300)
+    r = r.at[2].set(r[2] - coef @ basis)
     # a failed solve gives a large finite residual (never NaN), so LM backs off
     return jnp.where(tr.success & jnp.all(jnp.isfinite(r)), r, 1e3)
 
