@@ -20,6 +20,8 @@ the coefficients, which keeps the fit well conditioned.
 | `rate_independent_hysteresis` | Dahl state $z$: $\dot z = (\dot{\Delta\theta}/\sigma)(1 - z\,\mathrm{sign}(\dot{\Delta\theta}))$, $T$ += $T_h z$ |
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -109,7 +111,7 @@ class Effects(eqx.Module):
         s = getattr(self, f"{name}_sin").at[order - 1].add(amplitude * jnp.cos(phase))
         c = getattr(self, f"{name}_cos").at[order - 1].add(amplitude * jnp.sin(phase))
         new = eqx.tree_at(lambda e: (getattr(e, f"{name}_sin"), getattr(e, f"{name}_cos")), self, (s, c))
-        return eqx.tree_at(lambda e: e.active, new, frozenset(self.active | {name}))
+        return dataclasses.replace(new, active=frozenset(self.active | {name}))
 
     def with_values(self, name: str, **values) -> "Effects":
         """A copy with the scalar parameters of effect `name` set and the effect switched on."""
@@ -120,7 +122,7 @@ class Effects(eqx.Module):
         new = self
         for k, v in values.items():
             new = eqx.tree_at(lambda e: getattr(e, k), new, jnp.asarray(v, dtype=float))
-        return eqx.tree_at(lambda e: e.active, new, frozenset(self.active | {name}))
+        return dataclasses.replace(new, active=frozenset(self.active | {name}))
 
 
 def stiffness_torque(K1, torsion, effects: Effects):

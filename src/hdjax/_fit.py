@@ -217,18 +217,21 @@ def fit_parameters(
     theta0 = pmap.to_theta(p0)
 
     def residuals(theta, args):
-        p = pmap.to_params(theta, p0)
-        r = jax.vmap(lambda e: experiment_residuals(p, drive, e, sigma, simulator))(batch)
+        p0_, drive_, batch_, sigma_ = args
+        p = pmap.to_params(theta, p0_)
+        r = jax.vmap(lambda e: experiment_residuals(p, drive_, e, sigma_, simulator))(batch_)
         return r.reshape(-1)
 
+    # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which
+    # XLA would try to constant-fold)
     @eqx.filter_jit
-    def run(theta0):
-        sol = optx.least_squares(residuals, solver, theta0, max_steps=max_steps, throw=False)
-        r = residuals(sol.value, None)
-        J = jax.jacfwd(residuals)(sol.value, None)
+    def run(theta0, args):
+        sol = optx.least_squares(residuals, solver, theta0, args, max_steps=max_steps, throw=False)
+        r = residuals(sol.value, args)
+        J = jax.jacfwd(residuals)(sol.value, args)
         return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], r, J
 
-    theta, ok, steps, r, J = run(theta0)
+    theta, ok, steps, r, J = run(theta0, (p0, drive, batch, sigma))
     theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
     n_obs = int(np.sum(r != 0.0))
     chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))

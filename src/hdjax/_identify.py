@@ -127,7 +127,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     log(f"[3/4] simulating all {len(exps)} experiments with the fitted parameters")
     t0 = time.time()
     full = stack_experiments(exps)
-    traj = jax.jit(simulate_batch)(res.params, drive, full)
+    traj = jax.jit(simulate_batch)(res.params, drive, full)  # arrays passed as arguments, not constants
     t_sim = time.time() - t0
     m = np.asarray(full.mask)
     per_exp = []

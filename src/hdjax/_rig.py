@@ -40,10 +40,10 @@ import equinox as eqx
 import numpy as np
 
 from ._data import write_dataset
-from ._effects import EFFECT_NAMES, PERIODIC, SCALAR, Effects
+from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR, Effects
 from ._experiment import Experiment, make_experiment, stack_experiments
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
-from ._plant import Simulator, Trajectory, simulate_batch
+from ._plant import Simulator, simulate_batch
 
 
 __all__ = [
@@ -119,6 +119,13 @@ class Station:
     def rated_current(self) -> float:
         """Current (A) whose quasi-static locked torque `N·Km·i` equals the rated torque."""
         return self.rated_torque / self.locked_gain
+
+    @property
+    def locked_resonance(self) -> float:
+        """Resonance of the locked drive, `sqrt(K1 / (N² Jeff)) / 2π` (Hz): 12.7 Hz for HD1, 7.7 Hz
+        for HD2."""
+        N = float(self.drive.gear_ratio)
+        return math.sqrt(float(self.truth.K1) / (N**2 * float(self.truth.Jeff))) / TWO_PI
 
     @property
     def total_inertia(self) -> float:
@@ -218,6 +225,15 @@ class CurrentProfile:
     def __iter__(self):
         return iter((self.name, self.mode, self.current))
 
+    def scaled(self, factor: float) -> "CurrentProfile":
+        """A copy with the current (and the amplitude and offset in `info`) multiplied by `factor`."""
+        info = dict(self.info)
+        for key in ("amplitude", "offset"):
+            if key in info:
+                info[key] = float(info[key]) * factor
+        info["scale"] = float(info.get("scale", 1.0)) * factor
+        return dataclasses.replace(self, current=self.current * factor, info=info)
+
 
 def _ramp(t: np.ndarray) -> np.ndarray:
     """Raised-cosine ramp from 0 to 1 over `RAMP_TIME`."""
@@ -304,10 +320,13 @@ def campaign(
     at rest; square waves have edges rising over about 5 ms.
 
     *Constrained* (output locked): sine, chirp, square and multisine currents; peak currents
-    log-spread from 1.5× the Coulomb-friction current (the motor must overcome friction to wind
-    the flexspline) up to 80 % (sine, square, multisine) or 55 % (chirps, which pass the locked
-    resonance) of the current whose quasi-static torque $N K_m i$ is the rated torque; half of
-    them carry an offset. Torsion rates are small, so these also probe the low-velocity friction.
+    log-spread from 2× the Coulomb-friction current $i_c$ (the motor must overcome friction to
+    wind the flexspline) up to a quasi-static locked torque $N(K_m i - T_s)$ of 85 % of the rated
+    torque for sines (the largest at the lowest frequencies, and kept below the undamped
+    resonance gain $1/(1 - (f/f_{res})^2)$), 55 % for chirps and squares (which pass or ring the
+    locked resonance) and 60 % for multisines; half of them carry an offset. `run_campaign`
+    rescales any test whose true torque still exceeds the rating. Motor velocities stay low
+    (HD1: up to ~20 rad/s, mostly near zero), so these also probe the low-velocity friction.
 
     *Free motion*, three regimes (proportions 8 : 6 : 16 of 30):
 
@@ -339,22 +358,34 @@ def campaign(
 
     # ------------------------------------------------------------------ constrained
     kinds = _kinds(n_constrained, ("sine", "chirp", "square", "multisine"))
-    lo = 1.5 * i_coulomb
-    amps = _spread(rng, lo, 0.8 * i_rated, n_constrained)
-    for j, (kind, amp) in enumerate(zip(kinds, amps)):
+    f_res = station.locked_resonance
+    # peak currents per kind, log-spread from 2× the Coulomb current up to a quasi-static locked
+    # torque N·(Km·i − Tc) of 85 % (sines) or 55–60 % (chirps, squares, multisines) of rated
+    top = {"sine": 0.85, "chirp": 0.55, "square": 0.55, "multisine": 0.6}
+    amps_by_kind = {
+        k: list(_spread(rng, 2.0 * i_coulomb, top[k] * i_rated + i_coulomb, kinds.count(k))) for k in top
+    }
+    # sines: the largest amplitudes at the lowest frequencies (as on a real bench)
+    f_sines = sorted(_log_uniform(rng, 0.5, min(8.0, 0.7 * f_res)) for _ in range(kinds.count("sine")))
+    amps_by_kind["sine"] = sorted(amps_by_kind["sine"], reverse=True)
+    if amps_by_kind["sine"]:  # one test always goes near the rating
+        amps_by_kind["sine"][0] = top["sine"] * i_rated + i_coulomb
+    for j, kind in enumerate(kinds):
+        amp = float(amps_by_kind[kind].pop(0))
         info: dict[str, Any] = {}
         if kind == "sine":
-            f = _log_uniform(rng, 0.5, 8.0)
+            f = f_sines.pop(0)
             ph = rng.uniform(0, TWO_PI)
             shape = np.sin(TWO_PI * f * t + ph)
+            # undamped resonance gain 1/(1 - (f/f_res)^2) kept below rated torque
+            amp = min(amp, 0.9 * i_rated * (1.0 - (f / f_res) ** 2) + i_coulomb)
             info.update(frequency=f, phase=ph)
-        elif kind == "chirp":
-            amp = min(amp, 0.55 * i_rated)
+        elif kind == "chirp":  # passes the locked resonance
             f0, f1 = _log_uniform(rng, 0.3, 1.0), _log_uniform(rng, 5.0, 12.0)
             ph = rng.uniform(0, TWO_PI)
             shape = _chirp(t, f0, f1, duration, ph)
             info.update(f0=f0, f1=f1, phase=ph)
-        elif kind == "square":
+        elif kind == "square":  # the edges ring the locked resonance (up to ~45 % overshoot)
             f = _log_uniform(rng, 0.7, 4.0)
             ph = rng.uniform(0, TWO_PI)
             shape = _square(t, f, ph)
@@ -366,7 +397,7 @@ def campaign(
             shape = _multisine(t, freqs, weights, phases)
             info.update(frequencies=freqs.tolist(), weights=weights.tolist(), phases=phases.tolist())
         offset = 0.0
-        if j % 2 == 1:  # half of them with an offset, keeping the peak at `amp`
+        if (j + j // 4) % 2 == 1:  # half of them (of every kind) with an offset, keeping the peak at `amp`
             offset = float(rng.uniform(-0.3, 0.3)) * amp
             amp = amp - abs(offset)
         i = ramp * (offset + amp * shape)
@@ -397,12 +428,12 @@ def campaign(
         else:
             freqs = np.geomspace(f, 4.0 * f, 3)
             swing = _multisine(t, freqs, rng.uniform(0.5, 1.0, 3), rng.uniform(0, TWO_PI, 3))
-        info = {"direction": direction, "reverses": reverse}
+        info = {"direction": 0 if reverse else direction, "reverses": reverse}
         if reverse:
             # slow zero-mean current that reaches deep into each direction's Stribeck window
             depth = rng.uniform(0.75, 0.9)
             f = _log_uniform(rng, 0.7, 1.5)
-            s = np.sin(TWO_PI * f * t)
+            s = np.tanh(3.0 * np.sin(TWO_PI * f * t)) / np.tanh(3.0)  # soft square: little time stuck at 0
             lo_p, hi_p = station.friction_levels(+1)
             lo_n, hi_n = station.friction_levels(-1)
             up = max(lo_p, 0.0) + depth * (hi_p - max(lo_p, 0.0))
@@ -460,8 +491,9 @@ def campaign(
             u = _frictionless_velocity(ramp * shape, dt)
             if _two_sided(u):
                 break
-        amp = vpk * J / (Km * np.max(np.abs(u))) + i_coulomb
-        amp = max(amp, 2.0 * i_coulomb)
+        # friction margin; multisines spend more time at low current, so they get more
+        margin = 2.0 if kind == "multisine" else 1.0
+        amp = max(vpk * J / (Km * np.max(np.abs(u))) + margin * i_coulomb, (1.0 + margin) * i_coulomb)
         info.update(amplitude=float(amp), target_peak_velocity=float(vpk))
         free.append((kind, "high_velocity", ramp * amp * shape, info))
 
@@ -532,6 +564,7 @@ def run_campaign(
     profiles: list[CurrentProfile] | None = None,
     spacing: float = 30.0,
     simulator: Simulator | None = None,
+    torque_limit: bool = True,
     **campaign_options,
 ) -> list[Run]:
     """Run a campaign on the virtual rig: simulate the truth, then record it through the sensors.
@@ -547,6 +580,10 @@ def run_campaign(
     - `spacing`: time between the starts of successive experiments (s); experiment `k` starts at
       `k·spacing` s into the session, which the `thermal_drift` effect sees.
     - `simulator`: numerical options; default `Simulator(rtol=1e-8, atol=1e-10)`.
+    - `torque_limit`: if a constrained experiment's true torque exceeds the station's rated torque,
+      scale its current down to reach 90 % of it and repeat the test (as an operator would); the
+      `Run.profile` then holds the scaled current (`info["scale"]`). `campaign`'s amplitudes are
+      chosen so that this is rare.
     - `**campaign_options`: `n_constrained`, `n_free`, `duration` for `campaign`.
 
     **Returns:** a list of `Run`, in campaign order.
@@ -554,7 +591,9 @@ def run_campaign(
     **Raises:** `RuntimeError` if a truth simulation fails (step budget or solver failure).
 
     The truth is simulated with `simulate_batch` (one call per mode), driven by the clean
-    commanded current and starting at rest (zero torsion, velocity and output angle). The record
+    commanded current and starting at rest: zero torsion, velocity and output angle, with the
+    wave generator at its home angle θm = 0 (the rig homes it before each test, so periodic
+    effects keep their phase from one experiment to the next). The record
     then gets: torque + N(0, `torque_noise`²), motor velocity + N(0, `tacho_noise`²), output angle
     rounded to the encoder step (free motion only), current + N(0, `current_noise`²).
     """
@@ -564,38 +603,29 @@ def run_campaign(
         raise ValueError(f"`run_campaign`: {sorted(campaign_options)} are ignored when `profiles` is given.")
     if simulator is None:
         simulator = Simulator(rtol=1e-8, atol=1e-10)
+    profiles = list(profiles)
     starts = [k * float(spacing) for k in range(len(profiles))]
     clean: list[dict | None] = [None] * len(profiles)
     for mode in ("constrained", "free"):
         idx = [k for k, pr in enumerate(profiles) if pr.mode == mode]
         if not idx:
             continue
-        drivers = []
-        for k in idx:
-            pr = profiles[k]
-            z = np.zeros_like(pr.time)
-            drivers.append(
-                make_experiment(pr.time, pr.current, z, z, mode=mode, output_position=z, start_time=starts[k])
-            )
-        traj = _simulate(station, stack_experiments(drivers), effects, simulator)
-        ok = np.asarray(traj.success)
-        if not np.all(ok):
-            bad = [profiles[idx[j]].name for j in np.flatnonzero(~ok)]
-            raise RuntimeError(
-                f"`run_campaign` ({station.name}): the truth simulation failed for {bad} "
-                f"(steps {np.asarray(traj.num_steps)[~ok].tolist()}); raise `simulator.max_steps` or loosen "
-                "the tolerances."
-            )
+        for attempt in range(5):
+            traj = _simulate_profiles(station, [profiles[k] for k in idx], [starts[k] for k in idx], effects, simulator)
+            peaks = [np.max(np.abs(traj["torque"][j])) for j in range(len(idx))]
+            over = [j for j, pk in enumerate(peaks) if pk > station.rated_torque]
+            if mode != "constrained" or not torque_limit or not over:
+                break
+            if attempt == 4:
+                raise RuntimeError(
+                    f"`run_campaign` ({station.name}): {[profiles[idx[j]].name for j in over]} still exceed the "
+                    f"rated torque {station.rated_torque} N·m after rescaling; lower their currents."
+                )
+            for j in over:  # the experimenter turns the amplitude down and repeats the test
+                profiles[idx[j]] = profiles[idx[j]].scaled(0.9 * station.rated_torque / peaks[j])
         for j, k in enumerate(idx):
-            n = len(profiles[k].time)
-            clean[k] = {
-                "time": np.asarray(profiles[k].time),
-                "current": np.asarray(profiles[k].current),
-                **{f: np.asarray(getattr(traj, f)[j, :n]) for f in (
-                    "torque", "motor_velocity", "motor_position", "output_position", "output_velocity", "torsion")},
-            }  # fmt: skip
-            if not all(np.all(np.isfinite(v)) for v in clean[k].values()):
-                raise RuntimeError(f"`run_campaign` ({station.name}): non-finite truth in {profiles[k].name}.")
+            clean[k] = {f: v[j] for f, v in traj.items()}
+            clean[k]["current"] = np.asarray(profiles[k].current)
 
     rng = np.random.default_rng(seed)
     q = station.encoder_step
@@ -606,7 +636,7 @@ def run_campaign(
         current = c["current"] + station.current_noise * rng.standard_normal(n)
         velocity = c["motor_velocity"] + station.tacho_noise * rng.standard_normal(n)
         torque = c["torque"] + station.torque_noise * rng.standard_normal(n)
-        output = np.round(c["output_position"] / q) * q if pr.mode == "free" else None
+        output = np.round(c["output_position"] / q) * q + 0.0 if pr.mode == "free" else None  # + 0.0: no -0
         exp = make_experiment(
             c["time"], current, torque, velocity, mode=pr.mode, output_position=output, start_time=starts[k]
         )
@@ -619,8 +649,30 @@ def _simulate_jit(p, drive, batch, effects, simulator):
     return simulate_batch(p, drive, batch, effects=effects, simulator=simulator)
 
 
-def _simulate(station: Station, batch: Experiment, effects: Effects, simulator: Simulator) -> Trajectory:
-    return _simulate_jit(station.truth, station.drive, batch, effects, simulator)
+def _simulate_profiles(station: Station, profiles, starts, effects: Effects, simulator: Simulator) -> dict:
+    """Truth of one mode's profiles in one batched call, from rest; per-experiment numpy arrays."""
+    mode = profiles[0].mode
+    drivers = []
+    for pr, start in zip(profiles, starts):
+        z = np.zeros_like(pr.time)
+        drivers.append(make_experiment(pr.time, pr.current, z, z, mode=mode, output_position=z, start_time=start))
+    traj = _simulate_jit(station.truth, station.drive, stack_experiments(drivers), effects, simulator)
+    ok = np.asarray(traj.success)
+    if not np.all(ok):
+        bad = [profiles[j].name for j in np.flatnonzero(~ok)]
+        raise RuntimeError(
+            f"`run_campaign` ({station.name}): the truth simulation failed for {bad} "
+            f"(steps {np.asarray(traj.num_steps)[~ok].tolist()}); raise `simulator.max_steps` or loosen "
+            "the tolerances."
+        )
+    out: dict[str, list] = {"time": [np.asarray(pr.time) for pr in profiles]}
+    for f in ("torque", "motor_velocity", "motor_position", "output_position", "output_velocity", "torsion"):
+        v = np.asarray(getattr(traj, f))
+        out[f] = [v[j, : len(pr.time)] for j, pr in enumerate(profiles)]
+    for j, pr in enumerate(profiles):
+        if not all(np.all(np.isfinite(out[f][j])) for f in out):
+            raise RuntimeError(f"`run_campaign` ({station.name}): non-finite truth in {pr.name}.")
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -717,21 +769,38 @@ def hide_effect(
         raise ValueError(f"`hide_effect`: unknown effect {name!r}; known: {list(EFFECT_NAMES)}.")
     a = reference_magnitude(name, station) if magnitude is None else float(magnitude)
     if name in PERIODIC:
-        return base.with_periodic(name, int(order), a, float(phase))
+        return _with_periodic(base, name, int(order), a, float(phase))
     if name == "nonlinear_stiffness":
-        return base.with_values(name, K3=a)
+        return _with_values(base, name, K3=a)
     if name == "lost_motion":
-        return base.with_values(name, backlash=a)
+        return _with_values(base, name, backlash=a)
     if name == "load_dependent_friction":
-        return base.with_values(name, mu=a)
+        return _with_values(base, name, mu=a)
     if name == "thermal_drift":
-        return base.with_values(name, beta=a, tau=600.0 if tau is None else float(tau))
+        return _with_values(base, name, beta=a, tau=600.0 if tau is None else float(tau))
     if name == "input_delay":
-        return base.with_values(name, delay=a)
+        return _with_values(base, name, delay=a)
     if name == "rate_independent_hysteresis":
         s = 0.02 * station.rated_torque / float(station.truth.K1) if sigma is None else float(sigma)
-        return base.with_values(name, Th=a, sigma=s)
+        return _with_values(base, name, Th=a, sigma=s)
     raise AssertionError(name)  # pragma: no cover
+
+
+def _with_periodic(base: Effects, name: str, order: int, amplitude: float, phase: float) -> Effects:
+    """`base` plus `amplitude·sin(order·θm + phase)` in periodic effect `name`, switched on.
+
+    (Same result as `Effects.with_periodic`, built with `dataclasses.replace` so that the static
+    `active` field is set through the constructor.)"""
+    if not 1 <= order <= MAX_ORDER:
+        raise ValueError(f"`hide_effect`: order must be 1..{MAX_ORDER}, got {order}.")
+    s = getattr(base, f"{name}_sin").at[order - 1].add(amplitude * math.cos(phase))
+    c = getattr(base, f"{name}_cos").at[order - 1].add(amplitude * math.sin(phase))
+    return dataclasses.replace(base, active=frozenset(base.active | {name}), **{f"{name}_sin": s, f"{name}_cos": c})
+
+
+def _with_values(base: Effects, name: str, **values) -> Effects:
+    """`base` with the scalar parameters of effect `name` set and the effect switched on."""
+    return dataclasses.replace(base, active=frozenset(base.active | {name}), **values)
 
 
 def describe_effects(effects: Effects) -> dict[str, dict]:
