@@ -1,0 +1,194 @@
+"""Rodas3: its coefficients satisfy the Rosenbrock order conditions, and the diffrax solver built on
+them shows order 3, L-stability on a stiff problem and adaptive control to the requested rtol."""
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import hdjax
+from hdjax._solver import ALPHA, B, B_HAT, GAMMA, GAMMAS
+
+
+# ------------------------------------------------------------------------------------------------
+# Coefficients (Hairer & Wanner, Solving ODEs II, §IV.7, order conditions for Rosenbrock methods)
+# ------------------------------------------------------------------------------------------------
+
+S = 4
+
+
+def _tableau():
+    a = np.zeros((S, S))
+    g = np.zeros((S, S))
+    for i in range(S):
+        assert len(ALPHA[i]) == len(GAMMAS[i]) == i
+        a[i, :i] = ALPHA[i]
+        g[i, :i] = GAMMAS[i]
+    return a, g, np.array(B), np.array(B_HAT)
+
+
+def test_order_conditions_up_to_three():
+    a, g, b, _ = _tableau()
+    beta = a + g  # β_ij = α_ij + γ_ij (j < i)
+    beta_i = beta.sum(axis=1)  # β'_i = Σ_j β_ij
+    alpha_i = a.sum(axis=1)  # α_i = Σ_j α_ij
+    tol = 1e-14
+    assert abs(b.sum() - 1.0) < tol  # order 1
+    assert abs(b @ beta_i - (0.5 - GAMMA)) < tol  # order 2
+    assert abs(b @ alpha_i**2 - 1.0 / 3.0) < tol  # order 3 (bushy tree)
+    assert abs(b @ beta @ beta_i - (1.0 / 6.0 - GAMMA + GAMMA**2)) < tol  # order 3 (tall tree)
+
+
+def test_embedded_method_has_order_two_but_not_three():
+    a, g, _, bh = _tableau()
+    beta = a + g
+    beta_i = beta.sum(axis=1)
+    alpha_i = a.sum(axis=1)
+    assert abs(bh.sum() - 1.0) < 1e-14
+    assert abs(bh @ beta_i - (0.5 - GAMMA)) < 1e-14
+    # it must fail a third-order condition, or the difference would not estimate the error
+    assert abs(bh @ alpha_i**2 - 1.0 / 3.0) > 0.1 or abs(bh @ beta @ beta_i - (1 / 6 - GAMMA + GAMMA**2)) > 0.01
+
+
+def test_stiffly_accurate():
+    a, g, b, bh = _tableau()
+    # main method: b_j = α_sj + γ_sj for j < s and b_s = γ, so y1 is the last stage's argument
+    np.testing.assert_allclose(b[:-1], (a + g)[-1, :-1], rtol=0, atol=1e-15)
+    assert b[-1] == GAMMA
+    # embedded method: stiffly accurate on stage 3 (b̂_j = α_3j + γ_3j, b̂_3 = γ, b̂_4 = 0)
+    np.testing.assert_allclose(bh[:2], (a + g)[2, :2], rtol=0, atol=1e-15)
+    assert bh[2] == GAMMA and bh[3] == 0.0
+
+
+def _stability_function(z):
+    a, g, b, _ = _tableau()
+    # y' = λy, z = hλ: (1 − zγ) k_i = z (y0 + Σ_j β_ij k_j)
+    k = np.linalg.solve((1 - z * GAMMA) * np.eye(S) - z * (a + g), z * np.ones(S))
+    return 1.0 + b @ k
+
+
+def test_l_stable():
+    # A-stable: |R(iy)| ≤ 1 on the imaginary axis (the boundary of the left half plane) ...
+    y = np.concatenate([np.logspace(-3, 6, 400), -np.logspace(-3, 6, 400)])
+    assert np.max(np.abs([_stability_function(1j * v) for v in y])) <= 1.0 + 1e-12
+    # ... and R(z) → 0 as z → −∞ (stiffly accurate): R(−1e3) ≈ −2.6e-3, R(−1e8) ≈ −2.7e-8
+    assert abs(_stability_function(-1e3)) < 5e-3
+    assert abs(_stability_function(-1e8)) < 1e-7
+    # and the diffrax solver itself: one step of y' = λy with hλ = −1e8 damps y to ~0
+    term = dfx.ODETerm(lambda t, y, args: -1e8 * y)
+    y1, *_ = hdjax.Rodas3().step(term, 0.0, 1.0, jnp.array(1.0), None, None, False)
+    np.testing.assert_allclose(float(y1), _stability_function(-1e8), rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------
+# Convergence on a nonlinear, non-autonomous ODE with a known solution: y' = −2t y², y(0) = 1,
+# y(t) = 1 / (1 + t²)
+# ------------------------------------------------------------------------------------------------
+
+
+def _nonlinear(t, y, args):
+    return -2.0 * t * y**2
+
+
+def _exact(t):
+    return 1.0 / (1.0 + t**2)
+
+
+T_END = 2.0
+
+
+@jax.jit
+def _solve_fixed(dt):
+    sol = dfx.diffeqsolve(dfx.ODETerm(_nonlinear), hdjax.Rodas3(), 0.0, T_END, dt, jnp.array(1.0),
+                          stepsize_controller=dfx.ConstantStepSize(), max_steps=1024)
+    return sol.ys[-1]
+
+
+def test_fixed_step_convergence_order_three():
+    ns = (20, 40, 80, 160)
+    errors = np.array([abs(float(_solve_fixed(T_END / n)) - _exact(T_END)) for n in ns])
+    orders = np.log2(errors[:-1] / errors[1:])
+    # measured: errors 1.43e-5, 1.74e-6, 2.14e-7, 2.66e-8; orders 3.04, 3.02, 3.01
+    assert np.all(np.abs(orders - 3.0) < 0.15), orders
+    assert errors[-1] < 5e-8, errors
+
+
+def test_embedded_error_estimate_is_third_order_local():
+    """Single steps from the exact solution: the local error of y1 is O(h⁴) and the embedded
+    estimate |y1 − ŷ1| (the 2nd-order method's local error) O(h³)."""
+    term = dfx.ODETerm(_nonlinear)
+    t0 = 0.5
+    hs = (0.1, 0.05, 0.025)
+    local, estimate = [], []
+    for h in hs:
+        y1, y_err, *_ = hdjax.Rodas3().step(term, t0, t0 + h, jnp.array(_exact(t0)), None, None, False)
+        local.append(abs(float(y1) - _exact(t0 + h)))
+        estimate.append(abs(float(y_err)))
+    local_order = np.log2(np.array(local[:-1]) / np.array(local[1:]))
+    est_order = np.log2(np.array(estimate[:-1]) / np.array(estimate[1:]))
+    # measured: local 8.2e-6, 3.9e-7, 1.9e-8 (orders 4.39, 4.33); estimate 2.2e-4, 2.9e-5, 3.8e-6
+    # (orders 2.89, 2.94)
+    assert np.all(local_order > 3.8), local_order
+    assert np.all(np.abs(est_order - 3.0) < 0.2), est_order
+    assert np.all(np.array(estimate) > np.array(local))  # the estimate does not understate the error
+
+
+@pytest.mark.parametrize("rtol", [1e-4, 1e-6, 1e-8])
+def test_adaptive_pid_reaches_rtol(rtol):
+    sol = dfx.diffeqsolve(dfx.ODETerm(_nonlinear), hdjax.Rodas3(), 0.0, T_END, 0.1, jnp.array(1.0),
+                          stepsize_controller=dfx.PIDController(rtol=rtol, atol=1e-3 * rtol),
+                          saveat=dfx.SaveAt(steps=True), max_steps=4096)
+    ts = np.asarray(sol.ts)
+    ok = np.isfinite(ts)
+    ys = np.asarray(sol.ys)[ok]
+    rel = np.abs(ys - _exact(ts[ok])) / np.abs(_exact(ts[ok]))
+    # global error at every step, in units of rtol: measured 0.39, 0.41, 0.69 (26, 122, 557 steps)
+    assert rel.max() < rtol, (rtol, rel.max() / rtol)
+    # and the controller does not get there by wasting steps: steps ∝ rtol^(−1/3) roughly
+    steps = int(sol.stats["num_accepted_steps"])
+    assert steps < 3.0 * 26 * (1e-4 / rtol) ** (1.0 / 3.0), steps
+
+
+# ------------------------------------------------------------------------------------------------
+# Stiff: Prothero–Robinson y' = λ(y − g(t)) + g'(t), g = sin, y(0) = g(0) + 1, exact g(t) + e^{λt}
+# ------------------------------------------------------------------------------------------------
+
+
+def _pr_field(t, y, lam):
+    return lam * (y - jnp.sin(t)) + jnp.cos(t)
+
+
+def _prothero_robinson(lam, solver, n, y0=1.0):
+    term = dfx.ODETerm(_pr_field)
+    ts = jnp.linspace(0.0, 1.0, 11)
+    # dt0, y0 and λ as arrays: one compilation per solver
+    sol = dfx.diffeqsolve(term, solver, 0.0, 1.0, jnp.asarray(1.0 / n), jnp.asarray(y0), args=jnp.asarray(lam),
+                          saveat=dfx.SaveAt(ts=ts),
+                          stepsize_controller=dfx.ConstantStepSize(), max_steps=4096, throw=False)
+    exact = np.sin(np.asarray(ts)) + y0 * np.exp(lam * np.asarray(ts))
+    return np.max(np.abs(np.asarray(sol.ys) - exact)[1:])
+
+
+def test_prothero_robinson_stiff_stability():
+    lam = -1e4
+    # h = 0.1, hλ = −1000: an explicit method explodes (measured Tsit5 error ~1e151) ...
+    explicit = _prothero_robinson(lam, dfx.Tsit5(), 10)
+    assert not np.isfinite(explicit) or explicit > 1e10, explicit
+    # ... Rodas3 damps the initial transient e^{λt} in one step (L-stable) and tracks g(t).
+    errors = np.array([_prothero_robinson(lam, hdjax.Rodas3(), n) for n in (10, 20, 40, 80)])
+    # measured: 2.6e-3 (h = 0.1, the transient not yet gone at t = 0.1), 2.8e-5, 6.6e-7, 3.2e-7.
+    # In the stiff regime Rosenbrock methods show order reduction (here to 1, error ≈ 0.25 h/|λ|,
+    # Hairer & Wanner II §VI.3), the price of stage order 1; the error stays far below h³.
+    assert np.all(np.isfinite(errors))
+    assert errors[1] < 1e-4 and errors[-1] < 1e-6, errors
+
+
+def test_prothero_robinson_error_uniform_in_stiffness():
+    """At fixed h = 0.05, the error falls as λ grows (≈ 0.27 h/|λ| once |hλ| ≫ 1): stiffness costs
+    no accuracy."""
+    lams = (-1e2, -1e4, -1e6)
+    errors = np.array([_prothero_robinson(lam, hdjax.Rodas3(), 20, y0=0.0) for lam in lams])
+    # measured: 3.8e-5, 1.3e-6, 1.3e-8
+    assert np.all(errors[1:] < errors[:-1] / 10), errors
+    assert errors[-1] < 1e-7, errors
