@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._effects import Effects
 from ._experiment import Experiment
 from ._model import PARAMETER_NAMES, Drive, Parameters
 from ._plant import Simulator, simulate
@@ -117,10 +118,12 @@ def noise_levels(batch: Experiment) -> jax.Array:
     return jnp.asarray(out)
 
 
-def experiment_residuals(p: Parameters, drive: Drive, exp: Experiment, sigma, simulator: Simulator):
+def experiment_residuals(
+    p: Parameters, drive: Drive, exp: Experiment, sigma, simulator: Simulator, effects: Effects = Effects()
+):
     """Noise-weighted residuals of one experiment, shape (3, time); zero on padding and on channels
     that were not measured."""
-    tr = simulate(p, drive, exp, simulator=simulator)
+    tr = simulate(p, drive, exp, effects=effects, simulator=simulator)
     m = exp.mask
     use_pos = exp.free * exp.has_output_position
     r = jnp.stack(
