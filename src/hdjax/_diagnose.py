@@ -11,8 +11,9 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    zero magnitude (which leaves the simulation equal to the base model). A forward-mode Jacobian
    of the noise-weighted residuals of all experiments w.r.t. the base parameters *and* every
    candidate's parameters gives, for each candidate, a Gauss–Newton step fitted on one half of
-   the experiments (base parameters re-fitted jointly, so an effect cannot hide in K1 or the
-   friction); the extended model is then *simulated* on the other half, and vice versa (2-fold
+   the experiments (base parameters held at their fit on all experiments; on acceptance, base and
+   effect parameters are re-fitted jointly, so an effect cannot hide in K1 or the friction); the
+   extended model is then *simulated* on the other half, and vice versa (2-fold
    cross-validation by experiment).
 4. A finding needs a held-out reduction of the weighted squared error in both folds, above 3 %
    overall and far beyond the chance level of its parameter count. Greedy: the best finding is
@@ -198,6 +199,8 @@ def diagnose(
         J = np.asarray(J)  # (exp, 3, time, params)
 
         def gn_step(cols_idx, train):
+            if not cols_idx:
+                return np.zeros(0)
             rows_r = r0[train].reshape(-1)
             rows_J = J[train][..., cols_idx].reshape(-1, len(cols_idx))
             JtJ = rows_J.T @ rows_J
@@ -220,7 +223,10 @@ def diagnose(
                 sse.append(float(np.sum(r**2)))
             return np.array(sse), res_all
 
-        base_idx = list(range(n_base)) + [n_base + all_cols.index(c) for c in chosen_cols]
+        # Fold fits move only the effect parameters (the base parameters stay at the fit on all
+        # experiments): with few experiments per fold, re-fitting nine base parameters on half the
+        # data is itself under-determined and its held-out error would swamp the effect's.
+        base_idx = [n_base + all_cols.index(c) for c in chosen_cols]
         chosen_names = [c for c, _ in chosen]
         sse_before, res_before = heldout_sse(None, base_idx, chosen_names, chosen_cols)
         if sse_full_before is None:
@@ -240,8 +246,8 @@ def diagnose(
         best = max(scores, key=lambda c: scores[c]["gain"])
         if not scores[best]["significant"]:
             break
-        # accept: refit on all experiments (one GN step from the same point) for the reported values
-        idx = base_idx + [n_base + all_cols.index(col) for col in cand_cols[best]]
+        # accept: refit base and effect parameters on all experiments (one GN step) for the reported values
+        idx = list(range(n_base)) + base_idx + [n_base + all_cols.index(col) for col in cand_cols[best]]
         delta = gn_step(idx, np.ones(n_exp, bool))
         z = np.asarray(z0).copy()
         z[idx] += delta

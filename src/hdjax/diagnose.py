@@ -1,0 +1,17 @@
+"""`python -m hdjax.diagnose TARGET [--out DIR]`: what the fitted paper model gets wrong, which
+SPEC §4 effect explains it, and the held-out gain of the extended model; writes diagnosis.json,
+extended_model.json, report.md and figures."""
+
+import sys
+
+from ._cli import main_wrapper
+
+
+def _run(dataset, config, out):
+    from ._diagnose_report import run_diagnose
+
+    run_diagnose(dataset, config, out.with_name(out.name + "-diagnosis") if out.parent.name == "results" else out)
+
+
+if __name__ == "__main__":
+    sys.exit(main_wrapper("hdjax.diagnose", __doc__, _run))
