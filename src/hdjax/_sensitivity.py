@@ -1,0 +1,1021 @@
+r"""The `sensitivity` workflow: which parameters matter where, and how well each is determined.
+
+1. **Normalised sensitivities** $S_k(t) = \partial y(t)/\partial\ln|p_k| = p_k\,\partial y/\partial p_k$
+   of every output channel (torque, wave-generator velocity, output angle), every parameter and
+   every experiment: `jax.jacfwd` through the diffrax solve (`Simulator.adjoint = ForwardMode()`),
+   `vmap`ped over the stacked experiments, one `eqx.filter_jit` with the data as arguments.
+   A unit of $\ln p$ is a relative change, so the eleven columns are directly comparable.
+2. **Identifiability.** The noise-weighted residual Jacobian in $\ln p$ (the residual of
+   `hdjax._fit.experiment_residuals`: each channel divided by its noise level, the output angle
+   projected off its rigid-body components) gives the Fisher information $F = J^\top J$, the
+   noise-only covariance $F^{-1}$ of $\ln p$ (so its square-root diagonal is the *relative* standard
+   error), correlations, and the eigen-directions of $F$ (the right singular vectors of $J$): the
+   parameter combinations the data barely constrain.
+3. **The paper's section V study**: the complete model against Coulomb = 0, viscous = 0, K1 / 10 and
+   Tst = 0, each simulated against the measured records, with the RMS increase per change.
+4. **Experiment-design advice** from the per-experiment Fisher information.
+
+Numerics (measured on the HD2 campaign, `benchmarks/sensitivity_hd2.py`): the Jacobian is computed
+with the Rosenbrock solver at `rtol = 1e-4` (atol = rtol·1e-2): against `rtol = 1e-7` the standard
+errors agree to 0.4 % and the ablation RMS figures to 3 digits, at a fifth of the cost (a tighter
+tolerance takes 5–10× more steps through the stiff velocity reversals).
+"""
+
+import math
+import pathlib
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import matplotlib
+import numpy as np
+
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+from matplotlib.colors import LogNorm
+
+from ._data import Dataset
+from ._experiment import Experiment, stack_experiments
+from ._fit import CHANNELS, DEFAULT_FREE, noise_levels
+from ._io import atomic_savefig, atomic_write_json, atomic_write_text
+from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
+from ._plant import Simulator, Trajectory, simulate
+
+
+__all__ = [
+    "ABLATIONS",
+    "SCHEMA",
+    "Sensitivities",
+    "fisher_summary",
+    "run_sensitivity",
+    "scaled_parameters",
+    "sensitivities",
+    "simulate_lanes",
+    "weighted_jacobians",
+]
+
+SCHEMA = "hdjax.sensitivity/1"
+CHANNEL_UNITS = {"torque": "N·m", "motor_velocity": "rad/s", "output_position": "rad"}
+CHANNEL_SYMBOL = {"torque": "T", "motor_velocity": "ω_m", "output_position": "θ_o"}
+#: the parameters the fit (and the paper) estimate; alpha and Tss2 are fixed there
+ESTIMATED = tuple(DEFAULT_FREE)
+#: the paper's per-experiment regressions estimate these groups together (the rest held fixed)
+GROUPS = {
+    "K1": ("K1", "Tst"),
+    "Tst": ("K1", "Tst"),
+    "Jeff": ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn"),
+    "Tvp": ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn"),
+    "Tvn": ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn"),
+    "Tsp": ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn"),
+    "Tsn": ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn"),
+    "Tssp1": ("Tssp1", "Tssn1"),
+    "Tssn1": ("Tssp1", "Tssn1"),
+}
+#: the paper's section V changes: (key, label, the mode the paper studied it in, parameter change)
+ABLATIONS = (
+    ("coulomb_zero", "Coulomb = 0 (Tsp = Tsn = 0)", "free", lambda p: p.replace(Tsp=0.0, Tsn=0.0)),
+    ("viscous_zero", "viscous = 0 (Tvp = Tvn = 0)", "free", lambda p: p.replace(Tvp=0.0, Tvn=0.0)),
+    ("K1_div10", "K1 / 10", "constrained", lambda p: p.replace(K1=p.K1 / 10.0)),
+    ("Tst_zero", "Tst = 0", "constrained", lambda p: p.replace(Tst=0.0)),
+)
+DEFAULTS = {
+    "fit_json": None,  # path of a fit.json whose parameter values to use
+    "rtol": 1e-4,  # solver tolerance of the sensitivity and ablation simulations
+    "max_steps": 20_000,  # step budget per experiment (a simulation that exhausts it is reported)
+    "max_experiments": 50,  # sensitivities on at most this many experiments (evenly spread)
+    "ablation_both_modes": True,  # also run each change on the other mode (not only the paper's)
+    "significant_increase": 0.5,  # an RMS increase above this fraction counts as "matters"
+}
+_AGREE_FACTOR = 3.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Sensitivities
+# ----------------------------------------------------------------------------------------------
+
+
+def scaled_parameters(p: Parameters, s: jax.Array) -> Parameters:
+    """`p` with every parameter multiplied by `exp(s_k)` (order `PARAMETER_NAMES`), so that a
+    derivative with respect to `s_k` at 0 is one with respect to `ln|p_k|`."""
+    return p.replace(**{k: getattr(p, k) * jnp.exp(s[j]) for j, k in enumerate(PARAMETER_NAMES)})
+
+
+class Sensitivities(eqx.Module):
+    """Output of `sensitivities` for a stacked batch of experiments.
+
+    **Attributes:**
+
+    - `outputs`: simulated (torque N·m, motor velocity rad/s, output angle rad), shape
+      (experiment, 3, time).
+    - `S`: ∂output/∂ln|p| in the channel's unit, shape (experiment, 3, time, parameter), parameters
+      in the order of `PARAMETER_NAMES`.
+    - `success`, `num_steps`: per experiment, from the solve.
+    """
+
+    outputs: jax.Array
+    S: jax.Array
+    success: jax.Array
+    num_steps: jax.Array
+
+
+def _sensitivity_one(p: Parameters, drive: Drive, exp: Experiment, simulator: Simulator):
+    def f(s):
+        tr = simulate(scaled_parameters(p, s), drive, exp, simulator=simulator)
+        y = jnp.stack([tr.torque, tr.motor_velocity, tr.output_position])
+        return y, (y, tr.success, tr.num_steps)
+
+    S, (y, ok, steps) = jax.jacfwd(f, has_aux=True)(jnp.zeros(len(PARAMETER_NAMES)))
+    return Sensitivities(outputs=y, S=S, success=ok, num_steps=steps)
+
+
+@eqx.filter_jit
+def _sensitivities_jit(p, drive, batch, simulator):
+    # data enter as arguments, never as closed-over constants (which XLA would try to fold)
+    return jax.vmap(lambda e: _sensitivity_one(p, drive, e, simulator))(batch)
+
+
+def sensitivities(p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator = Simulator()) -> Sensitivities:
+    """Forward-mode sensitivities ∂y/∂ln|p| of all channels of a stacked batch
+    (`hdjax.stack_experiments`), by `jax.jacfwd` through the diffrax solve, `vmap`ped over the
+    experiments. `simulator.adjoint` must support forward mode (the default `ForwardMode()`)."""
+    return _sensitivities_jit(p, drive, batch, simulator)
+
+
+@eqx.filter_jit
+def _simulate_lanes_jit(P, drive, lanes, simulator):
+    return jax.vmap(lambda q, e: simulate(q, drive, e, simulator=simulator))(P, lanes)
+
+
+def simulate_lanes(P: Parameters, drive: Drive, lanes: Experiment, *, simulator: Simulator = Simulator()) -> Trajectory:
+    """Simulate lane `i` of a stacked batch `lanes` with parameter set `i` of the stacked `P` (each
+    `Parameters` leaf with a leading lane axis): many parameter sets in one `vmap`."""
+    return _simulate_lanes_jit(P, drive, lanes, simulator)
+
+
+def _rigid_body_projector(t: np.ndarray) -> np.ndarray:
+    """Orthonormal basis (2, n) of {1, t}: the output angle's rigid-body components."""
+    b = np.stack([np.ones_like(t), t - t.mean()])
+    return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+
+def weighted_jacobians(S, outputs, batch: Experiment, sigma) -> tuple[list[np.ndarray], list[np.ndarray], list[dict]]:
+    """Per experiment, the noise-weighted residual Jacobian in ln p and the weighted residual.
+
+    Rows: the masked samples of torque / σ_T, motor velocity / σ_ω and, in free motion with a
+    measured output angle, the output angle / σ_θ projected off its rigid-body components {1, t}
+    (as in `hdjax._fit.experiment_residuals`). Returns `(J_list, r_list, channel_rows)` where
+    `channel_rows[e]` maps channel name to that channel's weighted block of `J_list[e]`."""
+    S = np.asarray(S)
+    y = np.asarray(outputs)
+    sigma = np.asarray(sigma)
+    mask = np.asarray(batch.mask)
+    time_ = np.asarray(batch.time)
+    free = np.asarray(batch.free) * np.asarray(batch.has_output_position)
+    meas = np.stack([np.asarray(batch.torque), np.asarray(batch.motor_velocity), np.asarray(batch.output_position)], 1)
+    Js, rs, blocks = [], [], []
+    for e in range(S.shape[0]):
+        m = mask[e]
+        blk, rr = {}, []
+        for c, ch in enumerate(CHANNELS):
+            if ch == "output_position" and free[e] <= 0:
+                continue
+            A = S[e, c][m] / sigma[c]
+            r = (y[e, c][m] - meas[e, c][m]) / sigma[c]
+            if ch == "output_position":
+                B = _rigid_body_projector(time_[e][m])
+                A = A - B.T @ (B @ A)
+                r = r - B.T @ (B @ r)
+            blk[ch] = A
+            rr.append(r)
+        Js.append(np.concatenate(list(blk.values()), axis=0))
+        rs.append(np.concatenate(rr))
+        blocks.append(blk)
+    return Js, rs, blocks
+
+
+# ----------------------------------------------------------------------------------------------
+# Fisher information
+# ----------------------------------------------------------------------------------------------
+
+
+def fisher_summary(F, names, *, n_directions: int = 3, rcond: float = 1e-12) -> dict:
+    """Standard errors, correlations and weakest directions from a Fisher information matrix.
+
+    `F = JᵀJ` for a noise-weighted Jacobian `J` in the coordinates `names` (here ln p, so the
+    standard errors are relative). Parameters with no information (F_kk = 0) get an infinite
+    standard error and are left out of the inversion. The inverse is taken on the
+    diagonal-scaled matrix (pseudo-inverse with `rcond`) so that very different information
+    levels do not cost accuracy.
+
+    Returns a dict: `parameters`, `std_error` (√diag F⁻¹), `correlation` (list of lists, NaN for
+    uninformed parameters), `singular_values` (of J, ascending: √eig F), `directions`
+    (the `n_directions` weakest eigen-directions, each with its singular value, the standard error
+    along it, 1/s, and the unit-vector components)."""
+    F = np.asarray(F, dtype=float)
+    names = list(names)
+    P = len(names)
+    d = np.diag(F).copy()
+    ok = d > 0
+    se = np.full(P, np.inf)
+    corr = np.full((P, P), np.nan)
+    if ok.any():
+        idx = np.flatnonzero(ok)
+        Fs = F[np.ix_(idx, idx)]
+        dsc = 1.0 / np.sqrt(np.diag(Fs))
+        C = np.linalg.pinv(Fs * np.outer(dsc, dsc), rcond=rcond, hermitian=True) * np.outer(dsc, dsc)
+        s = np.sqrt(np.clip(np.diag(C), 0.0, None))
+        se[idx] = s
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr[np.ix_(idx, idx)] = C / np.outer(s, s)
+    w, V = np.linalg.eigh(0.5 * (F + F.T))
+    sv = np.sqrt(np.clip(w, 0.0, None))
+    directions = []
+    for i in range(min(n_directions, P)):
+        v = V[:, i] * (1.0 if V[np.argmax(np.abs(V[:, i])), i] >= 0 else -1.0)
+        directions.append(
+            {
+                "singular_value": float(sv[i]),
+                "std_error_along": float(1.0 / sv[i]) if sv[i] > 0 else math.inf,
+                "components": {k: float(v[j]) for j, k in enumerate(names)},
+            }
+        )
+    return {
+        "parameters": names,
+        "std_error": {k: float(se[j]) for j, k in enumerate(names)},
+        "correlation": corr.tolist(),
+        "singular_values": sv.tolist(),
+        "directions": directions,
+    }
+
+
+def _combination(components: dict, threshold: float = 0.2) -> str:
+    terms = sorted(((v, k) for k, v in components.items() if abs(v) >= threshold), key=lambda x: -abs(x[0]))
+    return " ".join(f"{'+' if v >= 0 else '−'} {abs(v):.2f}·ln|{k}|" for v, k in terms).lstrip("+ ")
+
+
+def _sub_fisher(F, names, sub):
+    idx = [names.index(k) for k in sub]
+    return F[np.ix_(idx, idx)]
+
+
+# ----------------------------------------------------------------------------------------------
+# The workflow
+# ----------------------------------------------------------------------------------------------
+
+
+def _options(config: dict) -> dict:
+    opts = dict(DEFAULTS)
+    opts.update((config or {}).get("sensitivity", {}) or {})
+    unknown = sorted(set(opts) - set(DEFAULTS))
+    if unknown:
+        raise ValueError(f"config `sensitivity`: unknown option(s) {unknown}; known are {sorted(DEFAULTS)}.")
+    return opts
+
+
+def _spread(lst: list[int], n: int) -> list[int]:
+    if n >= len(lst):
+        return list(lst)
+    if n <= 0:
+        return []
+    return sorted({lst[int(round(j))] for j in np.linspace(0, len(lst) - 1, n)})
+
+
+def _select(modes: list[str], max_n: int) -> list[int]:
+    """Evenly spread subset of at most `max_n` positions, in proportion to the modes."""
+    if len(modes) <= max_n:
+        return list(range(len(modes)))
+    cons = [j for j, m in enumerate(modes) if m == "constrained"]
+    free = [j for j, m in enumerate(modes) if m == "free"]
+    n_c = min(len(cons), max(1 if cons else 0, int(round(max_n * len(cons) / len(modes)))))
+    return sorted(_spread(cons, n_c) + _spread(free, max_n - n_c))
+
+
+def _load_fit_json(path: pathlib.Path, dataset: Dataset) -> tuple[Parameters, dict, dict]:
+    import json
+
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+        values = {k: float(d["parameters"][k]["value"]) for k in PARAMETER_NAMES}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(
+            f"{path}: cannot read the parameter values from this fit.json ({type(e).__name__}: {e}); it needs "
+            f"`parameters.<name>.value` for all of {list(PARAMETER_NAMES)}. Re-run `python -m hdjax.fit` or "
+            "remove `sensitivity.fit_json` from the config."
+        ) from None
+    if not all(math.isfinite(v) for v in values.values()):
+        raise ValueError(f"{path}: a parameter value in this fit.json is not finite; re-run `python -m hdjax.fit`.")
+    consistency = {k: d["parameters"][k].get("consistency") for k in PARAMETER_NAMES}
+    per_exp = {k: d["parameters"][k].get("per_experiment") for k in PARAMETER_NAMES}
+    return Parameters.from_dict(values), consistency, per_exp
+
+
+def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: dict, exps, log):
+    """(Parameters, source dict, consistency, per-experiment estimates, paper identification or None)."""
+    candidates = []
+    if opts.get("fit_json"):
+        p = pathlib.Path(opts["fit_json"]).expanduser()
+        if not p.is_file():
+            raise ValueError(f"config `sensitivity.fit_json`: {p} does not exist; give the path of a fit.json.")
+        candidates.append((p, True))
+    else:
+        stem = out.name[: -len("-sensitivity")] if out.name.endswith("-sensitivity") else None
+        if stem:
+            candidates.append((out.parent / stem / "fit.json", False))
+    for path, explicit in candidates:
+        if not path.is_file():
+            continue
+        import json
+
+        try:
+            name = json.loads(path.read_text(encoding="utf-8")).get("dataset")
+        except (OSError, ValueError):
+            name = None
+        if not explicit and name != dataset.name:
+            log(f"      ignoring {path}: it belongs to dataset {name!r}, not {dataset.name!r}")
+            continue
+        p, cons, per = _load_fit_json(path, dataset)
+        return p, {"kind": "fit.json", "path": str(path)}, cons, per, None
+    from ._identify import _options as fit_options
+    from ._paper_id import identify_paper
+
+    fo = fit_options(config)
+    paper = identify_paper(exps, dataset.drive, alpha=fo["alpha"], Tss2=fo["Tss2"], cutoff_hz=fo["cutoff_hz"])
+    src = {
+        "kind": "paper_identification",
+        "note": "no fit.json found (config `sensitivity.fit_json`, or results/<name>/fit.json beside the output "
+        "folder); the paper's regressions (section III) were run instead of the slow trajectory fit",
+        "undetermined": paper.undetermined(),
+    }
+    return paper.parameters(), src, dict(paper.consistency), dict(paper.per_experiment), paper
+
+
+def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
+    """Run the sensitivity and identifiability study on `dataset` and write sensitivity.json,
+    report.md and the figures into `out`. Returns the JSON dict."""
+    log = log or (lambda *_: None)
+    t_start = time.time()
+    timing = {}
+    opts = _options(config)
+    out = pathlib.Path(out)
+    dyn = dataset.dynamic_indices()
+    if dataset.drive is None or not dyn:
+        raise ValueError(
+            f"{dataset.folder}: `sensitivity` needs constrained or free experiments with a `drive` block; this "
+            f"dataset has only {sorted(set(dataset.modes))} experiments."
+        )
+    drive = dataset.drive
+    exps = [dataset.experiments[i] for i in dyn]
+    files_all = [dataset.files[i] for i in dyn]
+    modes_all = [dataset.modes[i] for i in dyn]
+    notes: list[str] = []
+
+    log("[1/5] parameters")
+    t0 = time.time()
+    p, source, consistency, per_exp_est, paper = _parameter_source(dataset, config, out, opts, exps, log)
+    timing["parameters"] = time.time() - t0
+    log(f"      from {source['kind']}" + (f" ({source['path']})" if "path" in source else ""))
+
+    sel = _select(modes_all, int(opts["max_experiments"]))
+    if len(sel) < len(exps):
+        notes.append(
+            f"Sensitivities, Fisher information and ablations use {len(sel)} of {len(exps)} experiments, evenly spread "
+            "over constrained and free (`sensitivity.max_experiments`), to bound the run time."
+        )
+    files = [files_all[j] for j in sel]
+    modes = [modes_all[j] for j in sel]
+    batch = stack_experiments([exps[j] for j in sel])
+    sigma = np.asarray(noise_levels(stack_experiments(exps)))
+    simulator = Simulator(rtol=float(opts["rtol"]), atol=float(opts["rtol"]) * 1e-2, max_steps=int(opts["max_steps"]))
+
+    log(f"[2/5] sensitivities ∂y/∂ln p: jacfwd through the solve, vmap over {len(sel)} experiments × {len(PARAMETER_NAMES)} parameters")
+    t0 = time.time()
+    sens = jax.block_until_ready(sensitivities(p, drive, batch, simulator=simulator))
+    timing["sensitivities"] = time.time() - t0
+    ok = np.asarray(sens.success) & np.all(np.isfinite(np.asarray(sens.S)), axis=(1, 2, 3))
+    failed = [files[j] for j in range(len(sel)) if not ok[j]]
+    if failed:
+        notes.append(
+            f"The simulation failed (step budget `sensitivity.max_steps` = {opts['max_steps']} or solver failure) for "
+            f"{len(failed)} experiment(s), left out of the Fisher information: {', '.join(failed)}."
+        )
+    Js, rs, blocks = weighted_jacobians(sens.S, sens.outputs, batch, sigma)
+    names = list(PARAMETER_NAMES)
+    P = len(names)
+    F_e = np.stack([J.T @ J if ok[j] else np.zeros((P, P)) for j, J in enumerate(Js)])
+    info = np.sqrt(np.clip(np.einsum("ekk->ek", F_e), 0, None)).T  # (parameter, experiment)
+    mask = np.asarray(batch.mask)
+    S_np = np.asarray(sens.S)
+    summary = {}
+    for k, name in enumerate(names):
+        rms_sig, rms_si = {}, {}
+        for c, ch in enumerate(CHANNELS):
+            v_sig, v_si = [], []
+            for j in range(len(sel)):
+                blk = blocks[j].get(ch)
+                if blk is None or not ok[j]:
+                    v_sig.append(None)
+                    v_si.append(None)
+                else:
+                    v_sig.append(float(np.sqrt(np.mean(blk[:, k] ** 2))))
+                    v_si.append(float(np.sqrt(np.mean(blk[:, k] ** 2))) * float(sigma[c]))
+            rms_sig[ch], rms_si[ch] = v_sig, v_si
+        summary[name] = {
+            "information": [float(info[k, j]) if ok[j] else None for j in range(len(sel))],
+            "rms_over_noise": rms_sig,
+            "rms": rms_si,
+        }
+
+    log("[3/5] Fisher information, standard errors, correlations, weakest directions")
+    F = F_e.sum(0)
+    n_obs = int(sum(len(r) for j, r in enumerate(rs) if ok[j]))
+    chi2 = float(sum(float(r @ r) for j, r in enumerate(rs) if ok[j]) / max(n_obs - P, 1))
+    fs_all = fisher_summary(F, names)
+    est = [k for k in ESTIMATED if k in names]
+    fs_est = fisher_summary(_sub_fisher(F, names, est), est)
+    comparison = _compare(F_e, ok, names, est, fs_est, consistency, per_exp_est, paper, sel, exps, modes)
+
+    log("[4/5] the paper's section V study (complete vs Coulomb = 0, viscous = 0, K1/10, Tst = 0)")
+    t0 = time.time()
+    ablation, abl_traj = _ablations(p, drive, batch, sens, ok, modes, files, opts, simulator)
+    timing["ablations"] = time.time() - t0
+
+    log("[5/5] experiment-design advice, report and figures")
+    advice = _advice(F, F_e, ok, names, est, fs_est, files, modes, batch, p)
+    t0 = time.time()
+    typical = _typical(info, ok, modes)
+    figs = _figures(out, names, info, ok, files, modes, batch, sens, typical, fs_all, abl_traj)
+    timing["figures"] = time.time() - t0
+    timing["total"] = time.time() - t_start
+
+    std_errors = {}
+    for k in names:
+        rel = fs_est["std_error"].get(k, fs_all["std_error"][k])
+        std_errors[k] = {
+            "relative": rel,
+            "absolute": rel * abs(float(getattr(p, k))),
+            "relative_all_free": fs_all["std_error"][k],
+            "estimated": k in est,
+            "unit": PARAMETER_UNITS[k],
+        }
+    result = {
+        "schema": SCHEMA,
+        "dataset": dataset.name,
+        "parameter_source": source,
+        "parameters": {k: float(getattr(p, k)) for k in names},
+        "experiments": [
+            {"file": f, "mode": m, "simulation_ok": bool(ok[j]), "solver_steps": int(np.asarray(sens.num_steps)[j])}
+            for j, (f, m) in enumerate(zip(files, modes))
+        ],
+        "noise_levels": dict(zip(CHANNELS, sigma.tolist())),
+        "sensitivity": {
+            "definition": (
+                "S_k(t) = ∂y(t)/∂ln|p_k| (forward-mode AD through the solve). Per parameter and experiment: "
+                "`information` = √(Σ_t Σ_channels (S_k/σ_channel)²) = 1 / (relative standard error of p_k if it "
+                "were the only unknown, from this experiment alone); `rms_over_noise` = RMS over time of S_k/σ "
+                "per channel (–); `rms` = RMS over time of S_k per channel (N·m, rad/s, rad). The output angle "
+                "is projected off its rigid-body components {1, t} first, as in the fit's residual."
+            ),
+            "experiments": files,
+            "modes": modes,
+            "parameters": summary,
+        },
+        "standard_errors": std_errors,
+        "correlation": {"parameters": fs_all["parameters"], "matrix": fs_all["correlation"]},
+        "svd": {
+            "parameters": names,
+            "singular_values": fs_all["singular_values"],
+            "weakest_directions": [
+                dict(d, combination=_combination(d["components"])) for d in fs_all["directions"]
+            ],
+        },
+        "identifiability": {
+            "chi2_reduced": chi2,
+            "observations": n_obs,
+            "note": (
+                "Standard errors are noise-only: √diag((JᵀJ)⁻¹) with J the noise-weighted residual Jacobian in ln p, "
+                "so they are relative. `relative` holds the 9 parameters the fit estimates (alpha and Tss2 fixed, "
+                "as in the paper); `relative_all_free` frees all 11. Multiply by √chi2_reduced for the fit's "
+                "convention (model error inflating the noise)."
+            ),
+            "estimated": fs_est,
+            "all": fs_all,
+            "comparison": comparison,
+        },
+        "ablation": ablation,
+        "advice": advice,
+        "notes": notes,
+        "figures": figs,
+        "timing_s": timing,
+    }
+    atomic_write_json(out / "sensitivity.json", result)
+    atomic_write_text(out / "report.md", _report(result))
+    log(f"wrote {out / 'sensitivity.json'} and {out / 'report.md'} in {timing['total']:.1f} s")
+    return result
+
+
+def _compare(F_e, ok, names, est, fs_est, consistency, per_exp_est, paper, sel, exps, modes) -> list[dict]:
+    """Relative SE beside the paper's consistency, with the noise-predicted spread of
+    per-experiment estimates (group of the paper's regression estimated, the rest fixed)."""
+    rows = []
+    pos_of = {orig: j for j, orig in enumerate(sel)}
+    for k in est:
+        group = [g for g in GROUPS.get(k, (k,)) if g in names]
+        informing = None
+        if paper is not None:
+            informing = paper.experiment_indices.get(k)
+        elif per_exp_est.get(k) is not None and len(per_exp_est[k]) == len(exps):
+            informing = [i for i, v in enumerate(per_exp_est[k]) if v is not None and np.isfinite(v)]
+        if informing is None:
+            want = "constrained" if k in ("K1", "Tst") else "free"
+            informing = [i for i in range(len(exps)) if i in pos_of and modes[pos_of[i]] == want]
+        js = [pos_of[i] for i in informing if i in pos_of and ok[pos_of[i]]]
+        se_e = []
+        for j in js:
+            Fg = _sub_fisher(F_e[j], names, group)
+            d = np.diag(Fg)
+            if d[group.index(k)] <= 0:
+                continue
+            keep = [g for g, v in zip(group, d) if v > 1e-12 * d.max()]
+            fsj = fisher_summary(_sub_fisher(F_e[j], names, keep), keep, n_directions=0)
+            se_e.append(fsj["std_error"][k])
+        se_e = [v for v in se_e if np.isfinite(v)]
+        predicted = float(np.sqrt(np.mean(np.square(se_e)))) if se_e else None
+        cons = consistency.get(k)
+        cons = float(cons) if cons is not None and np.isfinite(cons) else None
+        rel = fs_est["std_error"][k]
+        if cons is None or predicted is None:
+            agree, why = None, "no consistency figure (fewer than two experiments informed it)" if cons is None else "no experiment informs it"
+        else:
+            ratio = cons / predicted
+            agree = bool(1.0 / _AGREE_FACTOR <= ratio <= _AGREE_FACTOR)
+            if agree:
+                why = "the spread of per-experiment estimates is what the measurement noise predicts"
+            elif ratio > _AGREE_FACTOR:
+                why = (
+                    f"spread {ratio:.0f}× the noise prediction: model error (effects outside the model, e.g. torque "
+                    "ripple), the regression's own errors (filtered derivatives, equation-error bias) or drift between "
+                    "experiments, none of which the noise-only standard error contains"
+                )
+            else:
+                why = (
+                    f"spread {1 / ratio:.0f}× below the noise prediction: the regression uses more information than the "
+                    "trajectory Fisher bound of its parameter group assumes (e.g. the measured current and filtered "
+                    "signals as regressors), or few experiments give a noisy std"
+                )
+        rows.append(
+            {
+                "parameter": k,
+                "relative_std_error": rel,
+                "noise_predicted_spread": predicted,
+                "consistency": cons,
+                "experiments_informing": len(js),
+                "agree": agree,
+                "why": why,
+            }
+        )
+    return rows
+
+
+def _rms(a, b):
+    return float(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2)))
+
+
+def _ablations(p, drive, batch, sens, ok, modes, files, opts, simulator):
+    n = len(modes)
+    lanes_idx, lanes_params = [], []
+    for a, (key, _, mode, change) in enumerate(ABLATIONS):
+        for j in range(n):
+            if ok[j] and (opts["ablation_both_modes"] or modes[j] == mode):
+                lanes_idx.append((a, j))
+    if not lanes_idx:
+        return {"changes": [], "note": "no experiment could be simulated"}, None
+    sets = [change(p) for (_, _, _, change) in ABLATIONS]
+    P = jax.tree.map(lambda *x: jnp.stack(x), *[sets[a] for a, _ in lanes_idx])
+    idx = np.array([j for _, j in lanes_idx])
+    lanes = jax.tree.map(lambda x: x[idx], batch)
+    tr = jax.block_until_ready(simulate_lanes(P, drive, lanes, simulator=simulator))
+    succ = np.asarray(tr.success)
+    mask = np.asarray(batch.mask)
+    y_c = np.asarray(sens.outputs)
+    meas = {"torque": np.asarray(batch.torque), "motor_velocity": np.asarray(batch.motor_velocity)}
+    sim_lane = {"torque": np.asarray(tr.torque), "motor_velocity": np.asarray(tr.motor_velocity)}
+    thr = float(opts["significant_increase"])
+    changes = []
+    for a, (key, label, paper_mode, _) in enumerate(ABLATIONS):
+        per_mode = {}
+        for mode in ("constrained", "free"):
+            lane_ids = [li for li, (aa, j) in enumerate(lanes_idx) if aa == a and modes[j] == mode]
+            if not lane_ids:
+                continue
+            good = [li for li in lane_ids if succ[li] and np.all(np.isfinite(sim_lane["torque"][li]))]
+            bad = [files[lanes_idx[li][1]] for li in lane_ids if li not in good]
+            entry = {"experiments": len(lane_ids), "failed": bad, "rms_complete": {}, "rms": {}, "rms_increase": {},
+                     "nrmse_complete": {}, "nrmse": {}}
+            for c, ch in enumerate(("torque", "motor_velocity")):
+                if not good:
+                    continue
+                js = [lanes_idx[li][1] for li in good]
+                m_all = np.concatenate([meas[ch][j][mask[j]] for j in js])
+                c_all = np.concatenate([y_c[j, c][mask[j]] for j in js])
+                s_all = np.concatenate([sim_lane[ch][li][mask[lanes_idx[li][1]]] for li in good])
+                spread = float(np.sqrt(np.mean((m_all - m_all.mean()) ** 2)))
+                rc, ra = _rms(c_all, m_all), _rms(s_all, m_all)
+                entry["rms_complete"][ch] = rc
+                entry["rms"][ch] = ra
+                entry["rms_increase"][ch] = ra / rc - 1.0 if rc > 0 else None
+                entry["nrmse_complete"][ch] = rc / spread if spread > 0 else None
+                entry["nrmse"][ch] = ra / spread if spread > 0 else None
+            incs = [v for v in entry["rms_increase"].values() if v is not None]
+            entry["matters"] = bool(incs and max(incs) > thr) if good else None
+            per_mode[mode] = entry
+        changes.append({"change": key, "label": label, "paper_mode": paper_mode, "per_mode": per_mode})
+    conclusions = _ablation_conclusions(changes, thr)
+    traj = {"lanes": lanes_idx, "torque": sim_lane["torque"], "motor_velocity": sim_lane["motor_velocity"], "success": succ}
+    return {
+        "definition": (
+            "RMS(simulated − measured) pooled over the mode's experiments, per channel, for the complete model and "
+            "each change; rms_increase = RMS_changed / RMS_complete − 1; nrmse divides by RMS(measured − mean). "
+            f"A change `matters` in a mode when an RMS increase exceeds {thr:g}."
+        ),
+        "changes": changes,
+        "conclusions": conclusions,
+    }, traj
+
+
+def _ablation_conclusions(changes, thr) -> dict:
+    by = {c["change"]: c for c in changes}
+
+    def inc(key, mode):
+        e = by.get(key, {}).get("per_mode", {}).get(mode)
+        if not e or not e["rms_increase"]:
+            return None
+        return max(v for v in e["rms_increase"].values() if v is not None)
+
+    def matters(key, mode):
+        e = by.get(key, {}).get("per_mode", {}).get(mode)
+        return None if not e else e.get("matters")
+
+    friction_free = [matters(k, "free") for k in ("coulomb_zero", "viscous_zero")]
+    compliance_cons = [matters(k, "constrained") for k in ("K1_div10", "Tst_zero")]
+    lines = []
+    for key, label, paper_mode in (("coulomb_zero", "Coulomb friction", "free"), ("viscous_zero", "viscous friction", "free"),
+                                   ("K1_div10", "stiffness K1", "constrained"), ("Tst_zero", "structural damping Tst", "constrained")):
+        other = "constrained" if paper_mode == "free" else "free"
+        a, b = inc(key, paper_mode), inc(key, other)
+        s = f"{label}: RMS +{100 * a:.0f} % in {paper_mode} motion" if a is not None else f"{label}: not simulated in {paper_mode} motion"
+        if b is not None:
+            s += f", +{100 * b:.0f} % in {other} motion"
+        lines.append(s)
+    reproduced_free = all(v is True for v in friction_free)
+    reproduced_cons = all(v is True for v in compliance_cons)
+    differences = []
+    for key, label in (("coulomb_zero", "Coulomb"), ("viscous_zero", "viscous")):
+        if matters(key, "constrained"):
+            differences.append(
+                f"{label} friction also matters with the output locked: the wave generator still turns (the torsion is "
+                "N times the output-side twist), and without this friction nothing damps its motion on the soft "
+                "locked mode, so the locked velocity and torque go wrong too"
+            )
+    for key, label in (("K1_div10", "K1"), ("Tst_zero", "Tst")):
+        if matters(key, "free"):
+            differences.append(f"{label} also matters in free motion on these records")
+    return {
+        "paper": "Coulomb and viscous friction matter in free motion; K1 and Tst in constrained motion.",
+        "free_motion_friction_reproduced": reproduced_free,
+        "constrained_motion_compliance_reproduced": reproduced_cons,
+        "summary": lines,
+        "differences": differences,
+    }
+
+
+def _velocity_stats(batch, modes, Tss2):
+    w = np.asarray(batch.motor_velocity)
+    m = np.asarray(batch.mask)
+    out = {}
+    for mode in ("constrained", "free"):
+        js = [j for j, md in enumerate(modes) if md == mode]
+        if not js:
+            continue
+        v = np.concatenate([w[j][m[j]] for j in js])
+        out[mode] = {
+            "slow_positive": int(np.sum((v > 0) & (v < 3 * Tss2))),
+            "slow_negative": int(np.sum((v < 0) & (v > -3 * Tss2))),
+            "fast_positive": int(np.sum(v >= 3 * Tss2)),
+            "fast_negative": int(np.sum(v <= -3 * Tss2)),
+        }
+    return out
+
+
+def _advice(F, F_e, ok, names, est, fs_est, files, modes, batch, p) -> dict:
+    info = np.sqrt(np.clip(np.einsum("ekk->ek", F_e), 0, None))
+    ranking = {}
+    for k, name in enumerate(names):
+        order = [j for j in np.argsort(-info[:, k]) if ok[j]]
+        ranking[name] = [{"file": files[j], "mode": modes[j], "information": float(info[j, k])} for j in order]
+    se = {k: v for k, v in fs_est["std_error"].items() if np.isfinite(v)}
+    undetermined = [k for k, v in fs_est["std_error"].items() if not np.isfinite(v)]
+    worst = max(se, key=se.get) if se else None
+    result = {"ranking": ranking, "undetermined": undetermined}
+    if worst is None:
+        return result
+    Fe = _sub_fisher(F, names, est)
+    k_idx = est.index(worst)
+    best = None
+    for j in range(len(files)):
+        if not ok[j]:
+            continue
+        Fn = Fe + _sub_fisher(F_e[j], names, est)
+        s = fisher_summary(Fn, est, n_directions=0)["std_error"][worst]
+        if best is None or s < best[1]:
+            best = (j, s)
+    Tss2 = float(p.Tss2)
+    vs = _velocity_stats(batch, modes, Tss2)
+    free_share = float(sum(F_e[j][names.index(worst), names.index(worst)] for j in range(len(files)) if ok[j] and modes[j] == "free")
+                       / max(F[names.index(worst), names.index(worst)], 1e-300))
+    fv = vs.get("free", {})
+    if worst in ("Tssp1", "Tssn1", "Tss2"):
+        direction = "negative" if worst == "Tssn1" else "positive" if worst == "Tssp1" else "both"
+        counts = f"{fv.get('slow_positive', 0)} free-motion samples with 0 < ω < 3·Tss2 = {3 * Tss2:.2g} rad/s, " \
+                 f"{fv.get('slow_negative', 0)} with −{3 * Tss2:.2g} < ω < 0"
+        what = (
+            f"slow free-motion runs in the {direction} direction: a current just above the breakaway level "
+            f"(|Km·i| ≈ Tsp, Tsn + |Tss1|) so that the wave generator creeps at |ω| < 3·Tss2 for most of the "
+            f"record ({counts})"
+        )
+    elif worst in ("Tvp", "Tvn", "Tsp", "Tsn"):
+        direction = "positive" if worst in ("Tvp", "Tsp") else "negative"
+        counts = f"{fv.get('fast_positive', 0)} free samples with ω ≥ {3 * Tss2:.2g} rad/s, {fv.get('fast_negative', 0)} with ω ≤ −{3 * Tss2:.2g}"
+        what = (
+            f"free-motion runs at steady speeds spread over a wide range in the {direction} direction (viscous and "
+            f"Coulomb are separated by the velocity range: {counts})"
+        )
+    elif worst == "Jeff":
+        what = "free-motion runs with fast current steps (square waves, chirps): inertia is seen in the acceleration"
+    else:
+        what = ("locked-output runs with larger torque amplitude and a range of frequencies (torsion rate sets the "
+                "damping term, torsion the stiffness)")
+    result.update(
+        {
+            "worst_determined": {
+                "parameter": worst,
+                "relative_std_error": se[worst],
+                "share_of_information_from_free_motion": free_share,
+            },
+            "best_repeat": {
+                "file": files[best[0]],
+                "mode": modes[best[0]],
+                "relative_std_error_after": best[1],
+            },
+            "velocity_samples": vs,
+            "suggestion": (
+                f"{worst} is the worst-determined estimated parameter (noise-only relative SE {100 * se[worst]:.3g} %). "
+                f"Most informative experiments on it: {', '.join(r['file'] for r in ranking[worst][:3])}. Adding a "
+                f"repeat of {files[best[0]]} would bring its SE to {100 * best[1]:.3g} % (computed from the Fisher "
+                f"information); the experiment to add is {what}."
+            ),
+        }
+    )
+    return result
+
+
+# ----------------------------------------------------------------------------------------------
+# Figures and report
+# ----------------------------------------------------------------------------------------------
+
+
+def _typical(info, ok, modes) -> dict:
+    """Per mode, the experiment with the median total information (a typical record)."""
+    tot = np.sqrt(np.sum(info**2, axis=0))
+    out = {}
+    for mode in ("constrained", "free"):
+        js = [j for j, m in enumerate(modes) if m == mode and ok[j]]
+        if js:
+            js = sorted(js, key=lambda j: tot[j])
+            out[mode] = js[len(js) // 2]
+    return out
+
+
+def _short(f: str) -> str:
+    return pathlib.Path(f).stem
+
+
+def _figures(out, names, info, ok, files, modes, batch, sens, typical, fs_all, abl_traj) -> list[str]:
+    figs = []
+    order = [j for j, m in enumerate(modes) if m == "constrained"] + [j for j, m in enumerate(modes) if m == "free"]
+    n_cons = sum(m == "constrained" for m in modes)
+
+    # heat map: parameters × experiments
+    M = np.array([[info[k, j] if ok[j] and info[k, j] > 0 else np.nan for j in order] for k in range(len(names))])
+    fig, ax = plt.subplots(figsize=(max(8, 0.22 * len(order) + 3), 4.8))
+    finite = M[np.isfinite(M)]
+    norm = LogNorm(vmin=max(finite.min(), finite.max() * 1e-8), vmax=finite.max()) if finite.size else None
+    im = ax.imshow(np.ma.masked_invalid(M), aspect="auto", cmap="viridis", norm=norm, interpolation="nearest")
+    ax.set_yticks(range(len(names)), names)
+    ax.set_xticks(range(len(order)), [_short(files[j]) for j in order], rotation=90, fontsize=6)
+    if 0 < n_cons < len(order):
+        ax.axvline(n_cons - 0.5, color="w", lw=2)
+    ax.set_xlabel(f"experiment (constrained: first {n_cons}, free: last {len(order) - n_cons})")
+    ax.set_ylabel("parameter p_k")
+    ax.set_title("Information per experiment, √(Σ_t Σ_ch (∂y/∂ln p_k / σ_ch)²)")
+    cb = fig.colorbar(im, ax=ax)
+    cb.set_label("1 / relative SE of p_k alone (–), log scale")
+    fig.tight_layout()
+    atomic_savefig(fig, out / "sensitivity_heatmap.png", dpi=120)
+    plt.close(fig)
+    figs.append("sensitivity_heatmap.png")
+
+    # time-resolved sensitivity curves for a typical constrained and free experiment
+    cols = [(m, typical[m]) for m in ("constrained", "free") if m in typical]
+    if cols:
+        t = np.asarray(batch.time)
+        mask = np.asarray(batch.mask)
+        S = np.asarray(sens.S)
+        chans = ("torque", "motor_velocity")
+        fig, axes = plt.subplots(len(chans), len(cols), figsize=(6.5 * len(cols), 6), squeeze=False, sharex="col")
+        colors = plt.get_cmap("tab20")(np.linspace(0, 1, 20))
+        for ci, (mode, j) in enumerate(cols):
+            for ri, ch in enumerate(chans):
+                ax = axes[ri, ci]
+                c = CHANNELS.index(ch)
+                for k, name in enumerate(names):
+                    ax.plot(t[j][mask[j]], S[j, c][mask[j], k], lw=1, color=colors[(2 * k) % 20 + (k >= 10)],
+                            ls="-" if k < 6 else "--", label=name)
+                ax.set_ylabel(f"∂{CHANNEL_SYMBOL[ch]}/∂ln p ({CHANNEL_UNITS[ch]})")
+                ax.grid(alpha=0.3)
+                if ri == 0:
+                    ax.set_title(f"{mode}: {files[j]}", fontsize=9)
+            axes[-1, ci].set_xlabel("time (s)")
+        axes[0, -1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="parameter")
+        fig.tight_layout()
+        atomic_savefig(fig, out / "sensitivity_curves.png", dpi=110)
+        plt.close(fig)
+        figs.append("sensitivity_curves.png")
+
+    # correlation matrix
+    C = np.array(fs_all["correlation"], dtype=float)
+    fig, ax = plt.subplots(figsize=(6.8, 5.8))
+    im = ax.imshow(C, cmap="RdBu_r", vmin=-1, vmax=1)
+    ax.set_xticks(range(len(names)), names, rotation=90)
+    ax.set_yticks(range(len(names)), names)
+    for a in range(len(names)):
+        for b in range(len(names)):
+            if np.isfinite(C[a, b]):
+                ax.text(b, a, f"{C[a, b]:.2f}", ha="center", va="center", fontsize=6,
+                        color="w" if abs(C[a, b]) > 0.6 else "k")
+    ax.set_title("Parameter correlation (noise-only, all 11 free)")
+    cb = fig.colorbar(im, ax=ax)
+    cb.set_label("correlation coefficient (–)")
+    fig.tight_layout()
+    atomic_savefig(fig, out / "correlation.png", dpi=120)
+    plt.close(fig)
+    figs.append("correlation.png")
+
+    # paper's Fig. 6 (free) and Fig. 7 (constrained): measured vs complete vs simplified
+    if abl_traj is not None:
+        t = np.asarray(batch.time)
+        mask = np.asarray(batch.mask)
+        y_c = np.asarray(sens.outputs)
+        lanes = abl_traj["lanes"]
+        for fname, mode, keys in (("fig6_free_ablation.png", "free", ("coulomb_zero", "viscous_zero")),
+                                  ("fig7_constrained_ablation.png", "constrained", ("K1_div10", "Tst_zero"))):
+            if mode not in typical:
+                continue
+            j = typical[mode]
+            fig, axes = plt.subplots(2, len(keys), figsize=(6.2 * len(keys), 5.8), squeeze=False, sharex=True)
+            for ci, key in enumerate(keys):
+                a = [i for i, ab in enumerate(ABLATIONS) if ab[0] == key][0]
+                label = ABLATIONS[a][1]
+                li = [i for i, (aa, jj) in enumerate(lanes) if aa == a and jj == j]
+                for ri, (ch, c) in enumerate((("motor_velocity", 1), ("torque", 0))):
+                    ax = axes[ri, ci]
+                    meas = np.asarray(getattr(batch, ch))[j][mask[j]]
+                    ax.plot(t[j][mask[j]], meas, color="0.6", lw=0.8, label="measured")
+                    ax.plot(t[j][mask[j]], y_c[j, c][mask[j]], color="C0", lw=1.2, label="complete model")
+                    if li:
+                        ok_l = bool(abl_traj["success"][li[0]])
+                        ax.plot(t[j][mask[j]], abl_traj[ch][li[0]][mask[j]], color="C3", lw=1.2, ls="--",
+                                label=label + ("" if ok_l else " (solve failed)"))
+                    ax.set_ylabel(f"{ch.replace('_', ' ')} ({CHANNEL_UNITS[ch]})")
+                    ax.grid(alpha=0.3)
+                    if ri == 0:
+                        ax.set_title(f"{label}: {files[j]} ({mode})", fontsize=9)
+                        ax.legend(fontsize=8)
+                axes[-1, ci].set_xlabel("time (s)")
+            fig.tight_layout()
+            atomic_savefig(fig, out / fname, dpi=110)
+            plt.close(fig)
+            figs.append(fname)
+    return figs
+
+
+def _pct(v):
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "—"
+    return f"{100 * v:.3g} %"
+
+
+def _g(v):
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "—"
+    return f"{v:.4g}"
+
+
+def _report(r: dict) -> str:
+    L = [f"# Sensitivity and identifiability of `{r['dataset']}`", ""]
+    src = r["parameter_source"]
+    L.append(
+        f"Parameters: **{src['kind'].replace('_', ' ')}**" + (f" (`{src['path']}`)" if "path" in src else "")
+        + (f". {src['note']}." if "note" in src else ".")
+    )
+    n_exp = len(r["experiments"])
+    n_ok = sum(e["simulation_ok"] for e in r["experiments"])
+    L += ["", f"Experiments analysed: {n_exp} ({n_ok} simulated successfully). Noise levels (from the data): "
+          + ", ".join(f"{k} {v:.3g} {CHANNEL_UNITS[k]}" for k, v in r["noise_levels"].items()) + "."]
+    figs = set(r["figures"])
+
+    def fig(name, alt):
+        return [f"![{alt}]({name})", ""] if name in figs else []
+
+    L += ["", "## 1. Sensitivities", "", r["sensitivity"]["definition"], ""]
+    L += fig("sensitivity_heatmap.png", "information heat map") + fig("sensitivity_curves.png", "sensitivity curves")
+    L += ["Most informative experiments per parameter (information √F_kk):", "",
+          "| parameter | 1st | 2nd | 3rd | information from free motion |", "|---|---|---|---|---|"]
+    sens = r["sensitivity"]["parameters"]
+    modes = r["sensitivity"]["modes"]
+    for k, rank in r["advice"]["ranking"].items():
+        tot = sum((v or 0) ** 2 for v in sens[k]["information"])
+        fr = sum((v or 0) ** 2 for v, m in zip(sens[k]["information"], modes) if m == "free")
+        cells = [f"{_short(x['file'])} ({x['information']:.3g})" for x in rank[:3]] + ["—"] * (3 - min(3, len(rank)))
+        L.append(f"| {k} | " + " | ".join(cells) + f" | {_pct(fr / tot) if tot > 0 else '—'} |")
+    idf = r["identifiability"]
+    L += ["", "## 2. Identifiability", "", idf["note"], "",
+          f"Reduced chi-square of the weighted residual at these parameters: {idf['chi2_reduced']:.3g} "
+          f"({idf['observations']} observations): " + (
+              "the model explains the data to the noise level." if idf["chi2_reduced"] < 1.5 else
+              "above 1, so the residual holds more than noise (model error), which the noise-only SE leave out."), ""]
+    L += ["| parameter | value | relative SE (9 estimated) | relative SE (all 11 free) | noise-predicted per-experiment spread | consistency | agree? |",
+          "|---|---|---|---|---|---|---|"]
+    comp = {c["parameter"]: c for c in idf["comparison"]}
+    for k, e in r["standard_errors"].items():
+        c = comp.get(k, {})
+        agree = {True: "yes", False: "no", None: "—"}[c.get("agree")]
+        L.append(f"| {k} | {_g(r['parameters'][k])} {e['unit']} | {_pct(e['relative']) if e['estimated'] else 'fixed'} | "
+                 f"{_pct(e['relative_all_free'])} | {_pct(c.get('noise_predicted_spread'))} | {_pct(c.get('consistency'))} | {agree} |")
+    L += ["", "Why they differ: the consistency (std/|mean| of the paper's per-experiment estimates) contains the "
+          "measurement noise of *one* experiment plus model error, the regression's own errors and any drift; the "
+          "joint standard error contains noise only, pooled over all experiments (≈ 1/√n of a per-experiment spread). "
+          "The fair comparison is the noise-predicted per-experiment spread: the SE of the parameter from one "
+          "informing experiment with its regression group estimated (compliance K1, Tst; high-velocity Jeff, Tvp, Tvn, "
+          "Tsp, Tsn; Stribeck Tssp1, Tssn1) and the rest fixed, RMS over the experiments the paper used. "
+          f"'agree' = consistency within a factor {_AGREE_FACTOR:g} of it.", ""]
+    for c in idf["comparison"]:
+        if c["agree"] is False:
+            L.append(f"- **{c['parameter']}**: {c['why']}.")
+    L += [""] + fig("correlation.png", "correlation matrix") + ["Strongest correlations (all 11 free):", ""]
+    C = np.array(r["correlation"]["matrix"], dtype=float)
+    names = r["correlation"]["parameters"]
+    pairs = sorted(((abs(C[a, b]), a, b) for a in range(len(names)) for b in range(a + 1, len(names)) if np.isfinite(C[a, b])), reverse=True)
+    for v, a, b in pairs[:4]:
+        L.append(f"- {names[a]} – {names[b]}: {C[a, b]:+.3f}")
+    L += ["", "Weakest directions (eigenvectors of F = JᵀJ with the smallest singular values of J, in ln p):", ""]
+    for d in r["svd"]["weakest_directions"]:
+        L.append(f"- s = {d['singular_value']:.3g} (relative SE along it {_pct(d['std_error_along'])}): {d['combination']}")
+    ab = r["ablation"]
+    L += ["", "## 3. The paper's section V study", "", ab.get("definition", ""), "",
+          "| change | mode | experiments | RMS torque (N·m) complete → changed | increase | RMS velocity (rad/s) complete → changed | increase | failed |",
+          "|---|---|---|---|---|---|---|---|"]
+    for c in ab.get("changes", []):
+        for mode, e in c["per_mode"].items():
+            mark = " (paper)" if mode == c["paper_mode"] else ""
+            cells = []
+            for ch in ("torque", "motor_velocity"):
+                if ch in e["rms"]:
+                    cells += [f"{e['rms_complete'][ch]:.3g} → {e['rms'][ch]:.3g}", _pct(e["rms_increase"][ch])]
+                else:
+                    cells += ["—", "—"]
+            L.append(f"| {c['label']} | {mode}{mark} | {e['experiments']} | " + " | ".join(cells) + f" | {len(e['failed'])} |")
+    con = ab.get("conclusions", {})
+    if con:
+        L += ["", f"Paper: {con['paper']}", ""] + [f"- {s}" for s in con["summary"]]
+        L += ["", f"Free-motion friction conclusion reproduced: **{'yes' if con['free_motion_friction_reproduced'] else 'no'}**; "
+              f"constrained-motion compliance conclusion reproduced: **{'yes' if con['constrained_motion_compliance_reproduced'] else 'no'}**."]
+        if con["differences"]:
+            L += ["", "Where the data go beyond or differ from the paper:", ""] + [f"- {d}." for d in con["differences"]]
+    L += [""] + fig("fig6_free_ablation.png", "Fig. 6: free motion") + fig("fig7_constrained_ablation.png", "Fig. 7: constrained motion")
+    adv = r["advice"]
+    L += ["## 4. Experiment design", ""]
+    if "suggestion" in adv:
+        L += [adv["suggestion"], ""]
+    if adv.get("undetermined"):
+        L += [f"Not determined at all by these experiments: {', '.join(adv['undetermined'])}.", ""]
+    for k in ("Tssp1", "Tssn1"):
+        if k in adv["ranking"]:
+            L.append(f"Ranking of the campaign by information on {k}: " + ", ".join(
+                f"{_short(x['file'])} ({x['information']:.3g})" for x in adv["ranking"][k][:10]) + (" …" if len(adv["ranking"][k]) > 10 else ""))
+            L.append("")
+    if r["notes"]:
+        L += ["## Notes", ""] + [f"- {n}" for n in r["notes"]] + [""]
+    L += ["## Timing", ""] + [f"- {k}: {v:.1f} s" for k, v in r["timing_s"].items()] + [""]
+    return "\n".join(L)
