@@ -1,0 +1,358 @@
+r"""Diagnosis of friction-only data: which extension of eq. 9 explains what it misses, by how much
+on data the fit never saw.
+
+Cross-validation folds (`friction_folds`): with one record, `N_BLOCKS` contiguous time blocks
+(fit on the others, test on the held one); with several, leave-experiments-out, the experiments
+dealt round-robin into at most `MAX_FOLDS` groups. Every sample is tested exactly once, so the
+held-out predictions of all folds make one held-out record.
+
+Greedy forward selection (`diagnose_friction`): starting from eq. 9, each applicable candidate of
+`CANDIDATES` is added to the current model and refitted on every fold (all eq. 9 parameters free
+too, started from the current fold fit). A candidate is *significant* when the held-out RMS falls
+by at least `min_gain` (relative) and the held-out error falls in every fold (all but one with 5
+or more folds). The best significant candidate is accepted and the loop repeats on the rest.
+
+Start values are cheap linear least squares on the current fold residual: harmonic orders
+(cycles per turn of `position`, greedy over 1 … `max_order`) for the two periodic candidates,
+a grid of presliding distances (Dahl state by the same exact recurrence in numpy, eq. 9 refitted
+linearly with the state replacing sign), a grid of time constants for thermal drift.
+"""
+
+import dataclasses
+import math
+import types
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._friction import FRICTION_NAMES, MAX_ORDERS, STATE_SCALE, FrictionStructure
+from ._friction_fit import (
+    I_BETA,
+    I_LDELTA,
+    I_LTAU,
+    I_RC,
+    I_RS,
+    I_TC,
+    I_TS,
+    FrictionProblem,
+    Rows,
+    RowFit,
+    rms_stats,
+    vector_to_params,
+)
+
+
+MAX_FOLDS = 5
+N_BLOCKS = 5
+CANDIDATES = ("position_dependent_friction", "position_dependent_torque", "presliding_friction", "thermal_drift")
+MIN_REVERSALS = 4  # velocity reversals a record set needs before presliding can be tested
+
+
+def friction_folds(problem: FrictionProblem, *, n_blocks: int = N_BLOCKS, max_folds: int = MAX_FOLDS) -> Rows:
+    """Cross-validation rows: contiguous time blocks of a single record, else experiments dealt
+    round-robin into at most `max_folds` held-out groups."""
+    mask, E = problem.mask, problem.E
+    train, test, labels = [], [], []
+    if E == 1:
+        n = int(mask[0].sum())
+        edges = np.linspace(0, n, n_blocks + 1).round().astype(int)
+        t = np.asarray(problem.data.time[0])
+        for k in range(n_blocks):
+            block = np.zeros_like(mask)
+            block[0, edges[k]:edges[k + 1]] = True
+            block &= mask
+            train.append(mask & ~block), test.append(block)
+            labels.append(f"block {k + 1}/{n_blocks} ({t[edges[k]]:.3g}–{t[edges[k + 1] - 1]:.3g} s)")
+    else:
+        F = min(E, max_folds)
+        group = np.arange(E) % F
+        for f in range(F):
+            sel = (group == f)[:, None]
+            train.append(mask & ~sel), test.append(mask & sel)
+            labels.append("hold out " + ", ".join(problem.files[e] for e in range(E) if group[e] == f))
+    return Rows(np.stack(train).astype(float), np.stack(test).astype(float), labels, np.ones(len(labels), bool))
+
+
+# ---------------------------------------------------------------------------------------------- start values
+
+
+def _lstsq_gain(A, r):
+    c, *_ = np.linalg.lstsq(A, r, rcond=None)
+    return c, float(np.sum((r - A @ c) ** 2))
+
+
+def choose_orders(problem: FrictionProblem, theta, r, g, on, *, max_order: int, min_drop: float = 0.005):
+    """Greedy harmonic orders of `Σ g·(a sin kθ + b cos kθ)` explaining residual `r` on samples `on`:
+    up to `MAX_ORDERS` orders, each kept only if it cuts the residual sum of squares by `min_drop`."""
+    th, rr, gg = theta[on], r[on], g[on]
+    sse0 = float(np.sum(rr**2))
+    cols, orders, coef = [], [], None
+    for _ in range(MAX_ORDERS):
+        best = (sse0, None, None)
+        for k in range(1, max_order + 1):
+            if k in orders:
+                continue
+            A = np.stack(cols + [gg * np.sin(k * th), gg * np.cos(k * th)], 1)
+            c, sse = _lstsq_gain(A, rr)
+            if sse < best[0]:
+                best = (sse, k, c)
+        if best[1] is None or best[0] > (1 - min_drop) * sse0:
+            break
+        k = best[1]
+        cols += [gg * np.sin(k * th), gg * np.cos(k * th)]
+        orders.append(k)
+        coef, sse0 = best[2], best[0]
+    return orders, coef
+
+
+def dahl_state_np(v, t, delta, sc):
+    """Dahl state of `_friction.presliding_state` in numpy, vectorised over the leading axes of
+    `delta` (broadcast against records `v`, `t` of shape (experiment, time))."""
+    h = np.diff(t, axis=-1, prepend=t[..., :1])
+    target = np.tanh(v / sc)
+    delta = np.asarray(delta)[..., None, None]
+    a = np.exp(-np.abs(v) * h / delta)
+    s = np.empty(np.broadcast_shapes(a.shape, target.shape))
+    s[..., 0] = target[..., 0]
+    for n in range(1, s.shape[-1]):
+        s[..., n] = a[..., n] * s[..., n - 1] + (1 - a[..., n]) * target[..., n]
+    return s
+
+
+@dataclasses.dataclass(eq=False)
+class _Fold:
+    x: np.ndarray
+    tie: int
+    free: np.ndarray
+    structure: FrictionStructure
+
+
+def _max_order(problem: FrictionProblem) -> int:
+    """Highest order resolvable: at least 8 samples per period at the fastest position step."""
+    th = np.asarray(problem.data.position)
+    steps = np.abs(np.diff(th, axis=1))[problem.mask[:, 1:]]
+    dmax = float(np.quantile(steps, 0.99)) if steps.size else 0.0
+    return int(max(1, min(40, math.floor(2 * np.pi / 8 / max(dmax, 1e-12)))))
+
+
+def _reversals(problem: FrictionProblem) -> int:
+    thr = 3.0 * problem.smoothing.velocity_scale
+    n = 0
+    for e in range(problem.E):
+        v = problem.v[e][problem.mask[e]]
+        d = np.sign(v[np.abs(v) > thr])
+        n += int(np.sum(d[1:] != d[:-1]))
+    return n
+
+
+def applicable(problem: FrictionProblem) -> dict[str, str | None]:
+    """`None` for candidates the data can test, else why not."""
+    has_pos = bool(np.all(np.asarray(problem.data.has_position) > 0))
+    span = [float(np.ptp(np.asarray(problem.data.position)[e][problem.mask[e]])) for e in range(problem.E)]
+    why_pos = None if has_pos else "no `position` column in every record"
+    if has_pos and max(span) <= 0:
+        why_pos = "position never changes"
+    rev = _reversals(problem)
+    return {
+        "position_dependent_friction": why_pos,
+        "position_dependent_torque": why_pos,
+        "presliding_friction": None if rev >= MIN_REVERSALS else
+        f"only {rev} velocity reversals (need {MIN_REVERSALS}): presliding memory shows only where velocity changes sign",
+        "thermal_drift": None,
+    }
+
+
+def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: np.ndarray, max_order: int) -> _Fold:
+    """`fold` with candidate `name` switched on and its start values from the training residual."""
+    x, free, st = fold.x.copy(), fold.free.copy(), fold.structure
+    idx = np.asarray(problem.index)
+    on = (w[:, idx] > 0) & problem.mask[:, idx]
+    r = (problem.T - pred)[:, idx]
+    theta = np.asarray(problem.data.position)[:, idx]
+    v = problem.v[:, idx]
+    scale = np.asarray(problem.scale)
+    if name in ("position_dependent_friction", "position_dependent_torque"):
+        p = problem_params(problem, fold)
+        if name == "position_dependent_friction":
+            sg = np.tanh(v / problem.smoothing.velocity_scale)
+            up = 0.5 * (1 + sg)
+            g = (p.Tsp * up + p.Tsn * (1 - up)) * sg
+        else:
+            g = np.ones_like(v)
+        orders, coef = choose_orders(problem, theta, r, g, on, max_order=max_order)
+        if not orders:
+            orders, coef = [1], _lstsq_gain(np.stack([g[on] * np.sin(theta[on]), g[on] * np.cos(theta[on])], 1), r[on])[0]
+        o = np.zeros(MAX_ORDERS)
+        o[: len(orders)] = orders
+        sl_s, sl_c = (I_RS, I_RC) if name == "position_dependent_friction" else (I_TS, I_TC)
+        cs, cc = np.zeros(MAX_ORDERS), np.zeros(MAX_ORDERS)
+        cs[: len(orders)], cc[: len(orders)] = coef[0::2], coef[1::2]
+        x[sl_s], x[sl_c] = cs / scale[sl_s], cc / scale[sl_c]
+        free[sl_s] = free[sl_c] = o > 0
+        if name == "position_dependent_friction":
+            st = FrictionStructure(ripple_orders=o, torque_orders=st.torque_orders, presliding=st.presliding, thermal=st.thermal)
+        else:
+            st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=o, presliding=st.presliding,
+                                   thermal=st.thermal)
+    elif name == "presliding_friction":
+        x[I_LDELTA] = np.log(_start_delta(problem, fold, w))
+        free[I_LDELTA] = True
+        st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=st.torque_orders, presliding=1.0,
+                               thermal=st.thermal)
+    elif name == "thermal_drift":
+        beta, tau = _start_thermal(problem, fold, r, on, idx)
+        x[I_BETA], x[I_LTAU] = beta / scale[I_BETA], np.log(tau)
+        free[I_BETA] = free[I_LTAU] = True
+        st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=st.torque_orders,
+                               presliding=st.presliding, thermal=1.0)
+    return _Fold(x, fold.tie, free, st)
+
+
+def problem_params(problem: FrictionProblem, fold: _Fold) -> types.SimpleNamespace:
+    """The fold's parameters as Python floats (attribute access, for numpy start values)."""
+    p = vector_to_params(jnp.asarray(fold.x), problem.scale, fold.tie)
+    names = FRICTION_NAMES + ("thermal_beta", "thermal_tau", "presliding_distance")
+    return types.SimpleNamespace(**{k: float(getattr(p, k)) for k in names})
+
+
+def _start_delta(problem: FrictionProblem, fold: _Fold, w: np.ndarray) -> float:
+    """Presliding distance (rad) from a grid: Dahl state replacing sign, eq. 9 refitted linearly."""
+    p = problem_params(problem, fold)
+    sc = problem.smoothing.velocity_scale
+    v, t = problem.v, np.asarray(problem.data.time)
+    idx = np.asarray(problem.index)
+    on = ((w > 0) & problem.mask)[:, idx]
+    vabs = np.abs(v[problem.mask])
+    h = float(np.median(np.diff(t[0])))
+    dmin = max(float(np.quantile(vabs, 0.5)) * h, 1e-7)
+    grid = dmin * np.geomspace(1.0, 1e3, 7)
+    S = dahl_state_np(v, t, grid, sc)[..., idx]  # (grid, E, n)
+    vv = v[:, idx]
+    up = 0.5 * (1 + np.tanh(vv / sc))
+    st = np.exp(-((vv / p.Tss2) ** 2))
+    y = problem.T[:, idx][on]
+    best, d_best = np.inf, grid[0]
+    for g in range(len(grid)):
+        s = S[g]
+        us = 0.5 * (1 + np.tanh(s / STATE_SCALE))
+        A = np.stack([vv * up, vv * (1 - up), s * us, s * (1 - us), s * us * st, s * (1 - us) * st], -1)[on]
+        _, sse = _lstsq_gain(A, y)
+        if sse < best:
+            best, d_best = sse, grid[g]
+    return float(d_best)
+
+
+def _start_thermal(problem: FrictionProblem, fold: _Fold, r, on, idx) -> tuple[float, float]:
+    """(beta, tau): viscous part × exp(−t_session/τ) regressed on the residual over a τ grid."""
+    p = problem_params(problem, fold)
+    sc = problem.smoothing.velocity_scale
+    v = problem.v[:, idx]
+    ts = (np.asarray(problem.data.start_time)[:, None] + np.asarray(problem.data.time))[:, idx]
+    up = 0.5 * (1 + np.tanh(v / sc))
+    visc = (p.Tvp * up + p.Tvn * (1 - up)) * v
+    span = max(float(np.ptp(ts[on])), 1e-6)
+    t0 = float(np.min(ts[on]))
+    best = (np.inf, 0.0, span)
+    for tau in span * np.array([0.05, 0.15, 0.4, 1.0, 3.0]):
+        a = (visc * np.exp(-(ts - t0) / tau))[on]
+        c, sse = _lstsq_gain(a[:, None], r[on])
+        if sse < best[0]:
+            best = (sse, float(c[0]) * math.exp(t0 / tau) if t0 / tau < 700 else 0.0, float(tau))
+    return best[1], best[2]
+
+
+# ---------------------------------------------------------------------------------------------- CV fits
+
+
+@dataclasses.dataclass(eq=False)
+class CVResult:
+    """Fold fits of one model: per-fold `_Fold`, pooled held-out prediction (experiment, time),
+    held-out RMS / NRMSE over every sample, per-fold held-out mean squared error."""
+
+    folds: list
+    fit: RowFit
+    heldout: np.ndarray
+    rms: float
+    nrmse: float
+    fold_mse: np.ndarray
+    converged: bool
+
+
+def _cv_fit(problem: FrictionProblem, rows: Rows, folds: list) -> CVResult:
+    fit = problem.solve(rows, [f.structure for f in folds], np.stack([f.x for f in folds]),
+                        np.stack([f.free for f in folds]), np.array([f.tie for f in folds]))
+    held = np.zeros_like(problem.T)
+    mse = np.zeros(len(folds))
+    for b in range(len(folds)):
+        on = rows.test[b] > 0
+        held[on] = fit.prediction[b][on]
+        mse[b] = float(np.mean((fit.prediction[b] - problem.T)[on] ** 2))
+    st = rms_stats(held, problem.T, problem.mask.astype(float))
+    new = [_Fold(fit.x[b], f.tie, f.free, f.structure) for b, f in enumerate(folds)]
+    return CVResult(new, fit, held, st["rms"], st["nrmse"], mse, bool(np.all(fit.converged)))
+
+
+def cv_eq9(problem: FrictionProblem, rows: Rows) -> CVResult:
+    """Eq. 9 alone on every fold."""
+    folds = []
+    for w in rows.train:
+        tie = problem.tie_for(w)
+        folds.append(_Fold(problem.start_eq9(w, tie), tie, problem.base_free(tie), FrictionStructure()))
+    return _cv_fit(problem, rows, folds)
+
+
+def _significant(before: CVResult, after: CVResult, min_gain: float) -> tuple[bool, float, float]:
+    gain = 1.0 - after.rms / before.rms
+    better = after.fold_mse < before.fold_mse
+    F = len(better)
+    need = F if F < 5 else F - 1
+    return bool(gain >= min_gain and better.sum() >= need), float(gain), float(better.mean())
+
+
+@dataclasses.dataclass(eq=False)
+class FrictionDiagnosis:
+    """Result of `diagnose_friction`: fold rows, baseline and final CV fits, accepted findings
+    (dicts), candidate scores per round, candidates not testable (name → why)."""
+
+    rows: Rows
+    baseline: CVResult
+    final: CVResult
+    findings: list
+    rounds: list
+    skipped: dict
+    max_order: int
+
+
+def diagnose_friction(problem: FrictionProblem, *, min_gain: float = 0.01, candidates=CANDIDATES,
+                      rows: Rows | None = None, log=print) -> FrictionDiagnosis:
+    """Greedy cross-validated selection of friction extensions (module docstring)."""
+    rows = friction_folds(problem) if rows is None else rows
+    why = applicable(problem)
+    skipped = {c: why[c] for c in candidates if why[c] is not None}
+    remaining = [c for c in candidates if why[c] is None]
+    max_order = _max_order(problem)
+    log(f"  eq. 9 on {len(rows.labels)} cross-validation folds")
+    base = cv_eq9(problem, rows)
+    current, findings, rounds = base, [], []
+    while remaining:
+        scores = {}
+        for name in remaining:
+            folds = [_add(problem, f, name, rows.train[b], current.fit.prediction[b], max_order)
+                     for b, f in enumerate(current.folds)]
+            res = _cv_fit(problem, rows, folds)
+            ok, gain, frac = _significant(current, res, min_gain)
+            scores[name] = (ok, gain, frac, res)
+            log(f"  + {name}: held-out RMS {current.rms:.4g} → {res.rms:.4g} N·m ({gain:+.1%}, better in {frac:.0%} of folds)")
+        rounds.append({k: {"significant": v[0], "relative_reduction": v[1], "folds_improved": v[2],
+                           "heldout_rms": v[3].rms} for k, v in scores.items()})
+        ok = [k for k in remaining if scores[k][0]]
+        if not ok:
+            break
+        best = max(ok, key=lambda k: scores[k][1])
+        _, gain, frac, res = scores[best]
+        findings.append({"effect": best, "before": current, "after": res, "relative_reduction": gain,
+                         "folds_improved": frac})
+        current = res
+        # later rounds retest only candidates that lowered the held-out error in this one
+        remaining = [k for k in remaining if k != best and scores[k][1] > 0]
+    return FrictionDiagnosis(rows, base, current, findings, rounds, skipped, max_order)

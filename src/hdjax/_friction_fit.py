@@ -1,0 +1,460 @@
+r"""Fitting eq. 9 (and its extensions) to friction experiments with optimistix Levenberg–Marquardt.
+
+One compiled fit serves everything: the parameter vector always holds eq. 9 and every extension
+slot (`_friction.FrictionStructure` switches them on as data), and a *row* is one fit — a weight
+per sample saying which samples it may see. Rows are `vmap`ped:
+
+- full rows: the pooled fit on all samples, then one fit per experiment (per-experiment
+  estimates and the paper's consistency, std/|mean|);
+- held-out rows: a chronological split (first `train_fraction` of every record to fit, the rest
+  to test), then leave-one-experiment-out folds (fit on the others, test on the held one);
+- record rows: the chronological split pooled, then each record fitted alone on its own first part.
+
+Each row has `E + 1` entries, so all calls share one shape and one compilation.
+
+The vector is normalised (viscous by RMS torque / RMS velocity, torques by RMS torque, `Tss2`,
+`presliding_distance` and `thermal_tau` through their logarithm), residuals are divided by the RMS
+torque. Directions without data (fewer than `MIN_DIRECTION_SAMPLES` samples beyond
+3 × `Smoothing.velocity_scale`, or under 2 % of the moving samples) cannot be identified: their three
+parameters are tied to the other direction's (a symmetric-friction assumption the report states).
+
+Standard errors are Gauss–Newton, $s^2 (J^\top J)^{-1}$, inflated by $n / n_{eff}$ with
+$n_{eff} = \sum_e n_e (1-\rho_e)/(1+\rho_e)$ from each record's lag-1 residual autocorrelation
+$\rho_e$: real friction residuals are far from white, and white-noise errors would be optimistic
+by that factor.
+"""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._data import FrictionExperiment
+from ._friction import (
+    FRICTION_NAMES,
+    MAX_ORDERS,
+    FrictionParameters,
+    FrictionStructure,
+    friction_model_torque,
+)
+from ._model import Smoothing
+
+
+M = MAX_ORDERS
+I_TVP, I_TVN, I_TSP, I_TSN, I_TSSP1, I_TSSN1, I_LTSS2 = range(7)
+I_RS = slice(7, 7 + M)
+I_RC = slice(7 + M, 7 + 2 * M)
+I_TS = slice(7 + 2 * M, 7 + 3 * M)
+I_TC = slice(7 + 3 * M, 7 + 4 * M)
+I_LDELTA = 7 + 4 * M
+I_BETA = I_LDELTA + 1
+I_LTAU = I_LDELTA + 2
+N_PARAMS = I_LTAU + 1
+LOG_INDICES = (I_LTSS2, I_LDELTA, I_LTAU)
+MIN_DIRECTION_SAMPLES = 50
+MIN_DIRECTION_FRACTION = 0.02
+TIE_NONE, TIE_NEG_TO_POS, TIE_POS_TO_NEG = 0, 1, 2
+RTOL, ATOL, XTOL = 1e-10, 1e-14, 1e-9  # LM stopping: relative / absolute cost change, relative step
+
+
+def stack_friction(experiments: list[FrictionExperiment]) -> FrictionExperiment:
+    """Pad friction experiments to a common length (time and position repeat their last value,
+    so the presliding state holds on padding; `mask` False there) and stack them."""
+    n = max(int(np.asarray(e.mask).sum()) for e in experiments)
+    cols = {k: [] for k in ("time", "velocity", "friction_torque", "position", "mask")}
+    for e in experiments:
+        m = np.asarray(e.mask)
+        for k in cols:
+            a = np.asarray(getattr(e, k))[m]
+            pad = n - a.size
+            if k == "mask":
+                cols[k].append(np.concatenate([a, np.zeros(pad, bool)]))
+            elif k in ("time", "position"):
+                cols[k].append(np.concatenate([a, np.full(pad, a[-1])]))
+            else:
+                cols[k].append(np.concatenate([a, np.zeros(pad)]))
+    return FrictionExperiment(
+        **{k: jnp.asarray(np.stack(v)) for k, v in cols.items()},
+        has_position=jnp.asarray([float(e.has_position) for e in experiments]),
+        start_time=jnp.asarray([float(e.start_time) for e in experiments]),
+    )
+
+
+def vector_to_params(x, scale, tie) -> FrictionParameters:
+    """Normalised vector (`N_PARAMS`,) to `FrictionParameters`, applying a direction tie."""
+    v = x * scale
+    tvp, tvn, tsp, tsn, a1, b1 = (v[i] for i in (I_TVP, I_TVN, I_TSP, I_TSN, I_TSSP1, I_TSSN1))
+    neg, pos = tie == TIE_NEG_TO_POS, tie == TIE_POS_TO_NEG
+    return FrictionParameters(
+        Tvp=jnp.where(pos, tvn, tvp),
+        Tvn=jnp.where(neg, tvp, tvn),
+        Tsp=jnp.where(pos, tsn, tsp),
+        Tsn=jnp.where(neg, tsp, tsn),
+        Tssp1=jnp.where(pos, b1, a1),
+        Tssn1=jnp.where(neg, a1, b1),
+        Tss2=jnp.exp(x[I_LTSS2]),
+        ripple_sin=v[I_RS],
+        ripple_cos=v[I_RC],
+        torque_sin=v[I_TS],
+        torque_cos=v[I_TC],
+        presliding_distance=jnp.exp(x[I_LDELTA]),
+        thermal_beta=v[I_BETA],
+        thermal_tau=jnp.exp(x[I_LTAU]),
+    )
+
+
+def params_to_vector(p: FrictionParameters, scale) -> np.ndarray:
+    """Inverse of `vector_to_params` (without a tie)."""
+    x = np.zeros(N_PARAMS)
+    for i, k in zip((I_TVP, I_TVN, I_TSP, I_TSN, I_TSSP1, I_TSSN1), FRICTION_NAMES):
+        x[i] = float(getattr(p, k))
+    x[I_RS], x[I_RC] = np.asarray(p.ripple_sin), np.asarray(p.ripple_cos)
+    x[I_TS], x[I_TC] = np.asarray(p.torque_sin), np.asarray(p.torque_cos)
+    x[I_BETA] = float(p.thermal_beta)
+    x = x / np.asarray(scale)
+    x[I_LTSS2], x[I_LDELTA], x[I_LTAU] = (np.log(float(v)) for v in (p.Tss2, p.presliding_distance, p.thermal_tau))
+    return x
+
+
+def predict(p: FrictionParameters, structure: FrictionStructure, data: FrictionExperiment, smoothing: Smoothing,
+            at=None):
+    """Model torque (N·m) on every record of a stacked batch, shape (experiment, time), or
+    (experiment, sample) at the sample indices `at`."""
+
+    def one(v, t, th, hp, st):
+        return friction_model_torque(p, structure, v, time=t, position=th, has_position=hp, start_time=st,
+                                     smoothing=smoothing, at=at)
+
+    return jax.vmap(one)(data.velocity, data.time, data.position, data.has_position, data.start_time)
+
+
+def _residual(x, x0, free, w, tie, data, structure, scale, sigma, smoothing, index):
+    p = vector_to_params(jnp.where(free, x, x0), scale, tie)
+    pred = predict(p, structure, data, smoothing, at=index)
+    return (jnp.sqrt(w[:, index]) * (pred - data.friction_torque[:, index]) / sigma).ravel()
+
+
+@eqx.filter_jit
+def _solve(x0, free, w, tie, data, structure, scale, sigma, smoothing, index, max_steps):
+    """Levenberg–Marquardt for one row: materialised forward-mode Jacobian, damped normal
+    equations, Nielsen's damping update; stops when a step changes the cost by less than
+    `RTOL` relative or the step is below `XTOL`. Parameters that are not free are held at `x0`.
+
+    Hand-written rather than `optimistix.LevenbergMarquardt`: on a 6 000-sample friction record
+    the residual costs 0.06 ms and its 22-column Jacobian 0.5 ms, but an optimistix LM step
+    (linearise, `FunctionLinearOperator`, materialise) took 15 ms on this CPU; the diagnosis
+    runs hundreds of these fits. A Python loop over rows beat `vmap` (a vmapped while-loop runs
+    every row for the slowest)."""
+
+    def resid(x):
+        r = _residual(x, x0, free, w, tie, data, structure, scale, sigma, smoothing, index)
+        return r, r
+
+    def lin(x):
+        J, r = jax.jacfwd(resid, has_aux=True)(x)
+        return r, jnp.where(free[None, :], J, 0.0)
+
+    fixed = jnp.where(free, 0.0, 1.0)
+    n_res = jax.eval_shape(resid, x0)[0].shape[0]
+
+    def propose(r, J, lam):
+        A = J.T @ J
+        g = J.T @ r
+        d = jnp.maximum(jnp.diag(A), 1e-12) * (1.0 - fixed) + fixed
+        dx = -jnp.linalg.solve(A + lam * jnp.diag(d) + jnp.diag(fixed), g) * (1.0 - fixed)
+        return dx, -(dx @ g) - 0.5 * dx @ (A @ dx)
+
+    def cond(c):
+        return (c["step"] < max_steps) & ~c["done"]
+
+    def body(c):
+        # one linearisation per iteration (at the trial point), so the model appears once in the
+        # compiled loop; the first iteration evaluates the start point and always accepts it
+        x, r, J, lam, nu, dx = c["x"], c["r"], c["J"], c["lam"], c["nu"], c["dx"]
+        first = c["step"] == 0
+        r_new, J_new = lin(x + dx)
+        cost = jnp.where(first, jnp.inf, 0.5 * r @ r)
+        cost_new = 0.5 * r_new @ r_new
+        rho = (cost - cost_new) / jnp.maximum(c["predicted"], 1e-300)
+        ok = first | (jnp.isfinite(cost_new) & (rho > 1e-4))
+        small = ~first & ok & ((jnp.abs(cost - cost_new) <= RTOL * cost + ATOL)
+                               | (jnp.linalg.norm(dx) <= XTOL * (jnp.linalg.norm(x) + XTOL)))
+        lam = jnp.where(first, lam, jnp.where(ok, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu))
+        nu = jnp.where(ok, 2.0, 2.0 * nu)
+        x, r, J = jnp.where(ok, x + dx, x), jnp.where(ok, r_new, r), jnp.where(ok, J_new, J)
+        dx, predicted = propose(r, J, lam)
+        return {"x": x, "r": r, "J": J, "lam": lam, "nu": nu, "dx": dx, "predicted": predicted,
+                "step": c["step"] + 1, "done": small | (lam > 1e12)}
+
+    z = jnp.zeros_like(x0)
+    init = {"x": x0, "r": jnp.zeros(n_res), "J": jnp.zeros((n_res, x0.size)), "lam": jnp.asarray(1e-3),
+            "nu": jnp.asarray(2.0), "dx": z, "predicted": jnp.asarray(1.0), "step": jnp.asarray(0),
+            "done": jnp.asarray(False)}
+    out = jax.lax.while_loop(cond, body, init)
+    return out["x"], out["done"], out["step"]
+
+
+@eqx.filter_jit
+def _predict_row(x, tie, data, structure, scale, smoothing):
+    return predict(vector_to_params(x, scale, tie), structure, data, smoothing)
+
+
+@eqx.filter_jit
+def _jacobian(x, free, w, tie, data, structure, scale, sigma, smoothing, index):
+    return jax.jacfwd(lambda x: _residual(x, x, free, w, tie, data, structure, scale, sigma, smoothing, index))(x)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Rows:
+    """A batch of fits: `train` / `test` weights (row, experiment, time), labels, `valid` rows."""
+
+    train: np.ndarray
+    test: np.ndarray
+    labels: list[str]
+    valid: np.ndarray
+
+
+@dataclasses.dataclass(eq=False)
+class RowFit:
+    """Fitted rows: normalised vectors `x`, ties, free masks, convergence, predictions (N·m)."""
+
+    x: np.ndarray
+    tie: np.ndarray
+    free: np.ndarray
+    converged: np.ndarray
+    steps: np.ndarray
+    prediction: np.ndarray
+    structure: FrictionStructure
+    structures: list
+
+    def params(self, b: int, problem: "FrictionProblem") -> FrictionParameters:
+        return vector_to_params(jnp.asarray(self.x[b]), problem.scale, self.tie[b])
+
+
+@dataclasses.dataclass(eq=False)
+class FrictionProblem:
+    """Friction experiments stacked for fitting, with the scales and options of the fit.
+
+    **Arguments:** `experiments` (`FrictionExperiment` list), `files` (labels), `Tss2` (rad/s:
+    fixed value, or `None` to fit it), `smoothing`, `max_steps` (LM steps per fit),
+    `max_fit_samples`: the LM residual uses every `stride`-th sample so that at most this many
+    enter a fit (the model, and the presliding state, still run through every sample; held-out
+    errors use every sample). Neighbouring samples at 0.3–2 ms carry nearly the same information.
+    """
+
+    experiments: list
+    files: list[str]
+    Tss2: float | None = None
+    smoothing: Smoothing = Smoothing()
+    max_steps: int = 100
+    max_fit_samples: int = 6000
+
+    def __post_init__(self):
+        if not self.experiments:
+            raise ValueError("`FrictionProblem`: no friction experiments given.")
+        self.data = stack_friction(self.experiments)
+        self.mask = np.asarray(self.data.mask)
+        self.v = np.asarray(self.data.velocity)
+        self.T = np.asarray(self.data.friction_torque)
+        vs = float(np.sqrt(np.mean(self.v[self.mask] ** 2)))
+        ts = float(np.sqrt(np.mean(self.T[self.mask] ** 2)))
+        if not vs > 0:
+            raise ValueError(f"`FrictionProblem` ({', '.join(self.files)}): every velocity is zero; eq. 9 needs motion.")
+        self.sigma = jnp.asarray(ts if ts > 0 else 1.0)  # an array: a Python float would be static under jit
+        scale = np.ones(N_PARAMS)
+        scale[[I_TVP, I_TVN]] = self.sigma / vs
+        scale[[I_TSP, I_TSN, I_TSSP1, I_TSSN1]] = self.sigma
+        scale[I_RS], scale[I_RC] = 0.1, 0.1
+        scale[I_TS], scale[I_TC] = self.sigma, self.sigma
+        scale[list(LOG_INDICES)] = 1.0
+        self.scale = jnp.asarray(scale)
+        self.E, self.N = self.mask.shape
+        self.stride = max(1, -(-self.E * self.N // int(self.max_fit_samples)))
+        self.index = jnp.arange(0, self.N, self.stride)
+
+    # ---------------------------------------------------------------- rows
+    def _split(self, frac):
+        first = np.zeros_like(self.mask)
+        for e in range(self.E):
+            n = int(self.mask[e].sum())
+            first[e, : int(round(frac * n))] = True
+        return first & self.mask, ~first & self.mask
+
+    def rows_full(self) -> Rows:
+        """Pooled fit on all samples, then one fit per experiment."""
+        w = [self.mask] + [self.mask & (np.arange(self.E) == e)[:, None] for e in range(self.E)]
+        w = np.stack(w).astype(float)
+        return Rows(w, w.copy(), ["pooled"] + list(self.files), np.ones(self.E + 1, bool))
+
+    def rows_heldout(self, train_fraction: float = 0.7) -> Rows:
+        """Chronological split pooled over records, then leave-one-experiment-out folds."""
+        first, last = self._split(train_fraction)
+        train, test, labels = [first], [last], [f"first {train_fraction:.0%} → last {1 - train_fraction:.0%}"]
+        for e in range(self.E):
+            sel = (np.arange(self.E) == e)[:, None]
+            train.append(self.mask & ~sel)
+            test.append(self.mask & sel)
+            labels.append(f"leave out {self.files[e]}")
+        valid = np.ones(self.E + 1, bool)
+        if self.E == 1:
+            train[1], test[1], valid[1] = first, last, False
+        return Rows(np.stack(train).astype(float), np.stack(test).astype(float), labels, valid)
+
+    def rows_records(self, train_fraction: float = 0.7) -> Rows:
+        """Chronological split pooled, then each record alone on its own first part."""
+        first, last = self._split(train_fraction)
+        train, test = [first], [last]
+        for e in range(self.E):
+            sel = (np.arange(self.E) == e)[:, None]
+            train.append(first & sel)
+            test.append(last & sel)
+        return Rows(np.stack(train).astype(float), np.stack(test).astype(float),
+                    ["pooled"] + list(self.files), np.ones(self.E + 1, bool))
+
+    # ---------------------------------------------------------------- identifiability
+    def directions(self, w: np.ndarray) -> tuple[int, int]:
+        """(positive, negative) samples of weight > 0 beyond 3 velocity scales."""
+        on = (w > 0) & self.mask
+        thr = 3.0 * self.smoothing.velocity_scale
+        return int(np.sum(on & (self.v > thr))), int(np.sum(on & (self.v < -thr)))
+
+    def tie_for(self, w: np.ndarray) -> int:
+        npos, nneg = self.directions(w)
+        need = max(MIN_DIRECTION_SAMPLES, MIN_DIRECTION_FRACTION * (npos + nneg))
+        if npos < need and nneg < need:
+            raise ValueError(
+                f"friction fit ({', '.join(self.files)}): only {npos} positive and {nneg} negative velocity samples "
+                f"beyond {3 * self.smoothing.velocity_scale:g} rad/s; eq. 9 needs at least {need:.0f} in one direction. "
+                "Record motion, or lower `velocity_scale`.")
+        return TIE_NONE if min(npos, nneg) >= need else (TIE_NEG_TO_POS if npos >= need else TIE_POS_TO_NEG)
+
+    def base_free(self, tie: int) -> np.ndarray:
+        free = np.zeros(N_PARAMS, bool)
+        free[:7] = True
+        if tie == TIE_NEG_TO_POS:
+            free[[I_TVN, I_TSN, I_TSSN1]] = False
+        elif tie == TIE_POS_TO_NEG:
+            free[[I_TVP, I_TSP, I_TSSP1]] = False
+        if self.Tss2 is not None:
+            free[I_LTSS2] = False
+        return free
+
+    # ---------------------------------------------------------------- eq. 9 start values
+    def basis(self, Tss2: float) -> np.ndarray:
+        """Eq. 9 regressors (experiment, time, 6) at `Tss2`, numpy (same smoothing as the model)."""
+        sc = self.smoothing.velocity_scale
+        v = self.v
+        up = 0.5 * (1.0 + np.tanh(v / sc))
+        sg = np.tanh(v / sc)
+        st = np.exp(-((v / Tss2) ** 2))
+        return np.stack([v * up, v * (1 - up), sg * up, sg * (1 - up), sg * up * st, sg * (1 - up) * st], -1)
+
+    def tss2_grid(self) -> np.ndarray:
+        if self.Tss2 is not None:
+            return np.array([float(self.Tss2)])
+        vmax = float(np.quantile(np.abs(self.v[self.mask]), 0.98))
+        lo = max(3.0 * self.smoothing.velocity_scale, 1e-3 * vmax)
+        return np.geomspace(lo, max(vmax, 2 * lo), 10)
+
+    def start_eq9(self, w: np.ndarray, tie: int) -> np.ndarray:
+        """Normalised start vector for one row: weighted linear least squares of eq. 9's six
+        coefficients on a grid of `Tss2`, keeping the best."""
+        best, x_best = np.inf, None
+        sw = np.sqrt(w[self.mask])
+        y = self.T[self.mask] * sw
+        pairs = [(0, 1), (2, 3), (4, 5)]
+        for tss2 in self.tss2_grid():
+            A = self.basis(tss2)[self.mask] * sw[:, None]
+            if tie != TIE_NONE:
+                A = np.stack([A[:, i] + A[:, j] for i, j in pairs], 1)
+            c, *_ = np.linalg.lstsq(A, y, rcond=None)
+            sse = float(np.sum((A @ c - y) ** 2))
+            if sse < best:
+                coef = np.repeat(c, 2) if tie != TIE_NONE else c
+                best, x_best = sse, np.concatenate([coef, [np.log(tss2)]])
+        x = np.zeros(N_PARAMS)
+        x[:7] = x_best
+        x[:6] /= np.asarray(self.scale)[:6]
+        x[I_LDELTA], x[I_LTAU] = np.log(1e-3), np.log(600.0)
+        return x
+
+    # ---------------------------------------------------------------- fitting
+    def solve(self, rows: Rows, structure, x0: np.ndarray, free: np.ndarray, tie: np.ndarray) -> RowFit:
+        """LM on every row from `x0` with `free` masks and direction ties; `structure` is one
+        `FrictionStructure` for all rows or a list with one per row."""
+        structures = structure if isinstance(structure, (list, tuple)) else [structure] * len(rows.labels)
+        xs, oks, steps, preds = [], [], [], []
+        for b in range(len(rows.labels)):
+            if not rows.valid[b]:  # placeholder row (one experiment: no leave-one-out fold)
+                xs.append(xs[0]), oks.append(oks[0]), steps.append(0), preds.append(preds[0])
+                continue
+            x, ok, n = _solve(jnp.asarray(x0[b]), jnp.asarray(free[b]), jnp.asarray(rows.train[b]),
+                              jnp.asarray(tie[b]), self.data, structures[b], self.scale, self.sigma, self.smoothing,
+                              self.index, self.max_steps)
+            xs.append(np.asarray(x)), oks.append(bool(ok)), steps.append(int(n))
+            preds.append(self.predict_row(xs[-1], int(tie[b]), structures[b]))
+        return RowFit(np.stack(xs), np.asarray(tie), np.asarray(free), np.asarray(oks), np.asarray(steps),
+                      np.stack(preds), structures[0], list(structures))
+
+    def predict_row(self, x: np.ndarray, tie: int, structure: FrictionStructure) -> np.ndarray:
+        """Model torque (N·m) of one normalised vector on every sample, shape (experiment, time)."""
+        return np.asarray(_predict_row(jnp.asarray(x), jnp.asarray(tie), self.data, structure, self.scale,
+                                       self.smoothing))
+
+    def fit_eq9(self, rows: Rows) -> RowFit:
+        """Eq. 9 alone on every row (start values from `start_eq9`)."""
+        tie = np.array([self.tie_for(w) for w in rows.train])
+        x0 = np.stack([self.start_eq9(w, t) for w, t in zip(rows.train, tie)])
+        free = np.stack([self.base_free(t) for t in tie])
+        return self.solve(rows, FrictionStructure(), x0, free, tie)
+
+    def std_errors(self, fit: RowFit, rows: Rows, b: int = 0) -> np.ndarray:
+        """Gauss–Newton standard errors (normalised units) of row `b`, inflated for correlated
+        residuals (see the module docstring); NaN for parameters not fitted."""
+        w = rows.train[b]
+        J = np.asarray(_jacobian(jnp.asarray(fit.x[b]), jnp.asarray(fit.free[b]), jnp.asarray(w),
+                                 jnp.asarray(fit.tie[b]), self.data, fit.structures[b], self.scale, self.sigma,
+                                 self.smoothing, self.index))
+        free = fit.free[b]
+        Jf = J[:, free]
+        idx = np.asarray(self.index)
+        w, mask = w[:, idx], self.mask[:, idx]
+        r = np.sqrt(w) * (fit.prediction[b][:, idx] - self.T[:, idx]) / self.sigma
+        n = int(np.sum((w > 0) & mask))
+        p = int(free.sum())
+        s2 = float(np.sum(r**2)) / max(n - p, 1)
+        n_eff = 0.0
+        for e in range(self.E):
+            on = (w[e] > 0) & mask[e]
+            re = (fit.prediction[b][e, idx] - self.T[e, idx])[on]
+            if re.size < 3:
+                continue
+            d = re - re.mean()
+            rho = float(np.clip(np.sum(d[1:] * d[:-1]) / max(np.sum(d * d), 1e-300), 0.0, 0.999))
+            n_eff += re.size * (1 - rho) / (1 + rho)
+        inflate = n / max(n_eff, p + 1.0)
+        cov = s2 * inflate * np.linalg.pinv(Jf.T @ Jf)
+        se = np.full(N_PARAMS, np.nan)
+        se[free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return se
+
+
+def physical_std_errors(x: np.ndarray, se: np.ndarray, scale) -> np.ndarray:
+    """Normalised standard errors to physical units (delta method through the logarithms)."""
+    out = se * np.asarray(scale)
+    for i in LOG_INDICES:
+        out[i] = np.exp(x[i]) * se[i]
+    return out
+
+
+def rms_stats(pred: np.ndarray, meas: np.ndarray, w: np.ndarray) -> dict:
+    """RMS error (N·m) and NRMSE (RMS error / RMS of measured minus its mean) on samples w > 0."""
+    on = w > 0
+    if not on.any():
+        return {"rms": float("nan"), "nrmse": float("nan"), "n": 0}
+    err = (pred - meas)[on]
+    m = meas[on]
+    rms = float(np.sqrt(np.mean(err**2)))
+    return {"rms": rms, "nrmse": rms / max(float(np.std(m)), 1e-300), "n": int(on.sum())}
