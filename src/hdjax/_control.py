@@ -1,0 +1,485 @@
+r"""A sampled torque controller in closed loop with the differentiable harmonic-drive plant.
+
+The loop (SI units), at every sample instant $t_k = k\,T_s$ of the torque sensor:
+
+1. measure: torque $y_k = T(t_k) + r_{ripple}(\theta_m) + n^T_k$ (strain gauges, with the plant's
+   `torque_sensor_ripple` effect if any) and wave-generator velocity $w_k = \omega_m(t_k) + n^\omega_k$
+   (tachometer);
+2. control law, PI(D) on measured torque plus model-based feed-forward:
+   $$u_k = k_r\frac{r_k}{N K_m} + k_p e_k + I_k - k_d\,\dot y^f_k + k_f\frac{\hat T_f(w_k)}{K_m},
+   \qquad e_k = r_k - y_k,$$
+   with $\hat T_f$ the identified friction (eq. 9, sign/step smoothed on the scale
+   `friction_scale`, because the tachometer is noisy), $\dot y^f$ the measured-torque derivative
+   through a first-order filter (time constant `derivative_filter`; derivative on measurement, so
+   a reference step gives no kick);
+3. current saturation, smooth so that gradients exist beyond the limit:
+   $i_k = \mathrm{sat}(u_k)$ with
+   $\mathrm{sat}(u) = u - s\,[\mathrm{softplus}((u - i_{max})/s) - \mathrm{softplus}((-u - i_{max})/s)]$,
+   which equals $u$ to within $s\,e^{-(i_{max}-|u|)/s}$ inside the limit and $\pm i_{max}$ to within
+   $s\ln 2$ beyond it (`saturation_scale` $s$ in A);
+4. integrator with back-calculation anti-windup:
+   $I_{k+1} = I_k + k_i T_s e_k + \beta\,(i_k - u_k)$;
+5. zero-order hold: the plant (`hdjax._plant`'s vector field, with any `hdjax.Effects`) runs from
+   $t_k$ to $t_{k+1}$ with the current $i_k$.
+
+Numerics (measured, see `benchmarks/tune_numerics.py`): the plant is stiff (power-law damping
+$|\dot{\Delta\theta}|^{1/2}$ and the smoothed Coulomb step give Jacobian eigenvalues of
+$10^4$–$10^5\,\mathrm{s^{-1}}$), the input is constant on each sample interval, and the controller
+state changes only at the samples. So the loop is a `lax.scan` over sample intervals and each
+interval is integrated by `substeps` fixed steps of the L-stable Rosenbrock method `Rodas3`
+(`hdjax._solver`, called step by step rather than through `diffeqsolve`, which costs a while loop
+per interval). The discrete closed loop is then a smooth function of the gains, which is what
+`jax.grad` and the central-difference test need.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+import diffrax as dfx
+
+from ._effects import Effects
+from ._model import Drive, Parameters, Smoothing, friction_torque
+from ._plant import _outputs, _vector_field
+from ._solver import Rodas3
+
+
+def _as_float(x):
+    return jnp.asarray(x, dtype=float)
+
+
+class TorqueGains(eqx.Module):
+    """The tunable gains of `TorqueController` (array leaves, so `jax.grad` reaches them).
+
+    - `kp`: proportional gain on the torque error (A/(N·m)).
+    - `ki`: integral gain (A/(N·m·s)).
+    - `kd`: derivative gain on the filtered measured torque (A·s/(N·m)).
+    - `kr`: reference feed-forward, as a multiple of the static locked gain $1/(N K_m)$ (-).
+    - `kf`: weight of the friction feed-forward $\\hat T_f(w)/K_m$ (-; 1 = the identified friction).
+    """
+
+    kp: Float[Array, ""] = eqx.field(converter=_as_float)
+    ki: Float[Array, ""] = eqx.field(converter=_as_float)
+    kd: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
+    kr: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
+    kf: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
+
+    def to_dict(self) -> dict[str, float]:
+        return {k: float(getattr(self, k)) for k in GAIN_NAMES}
+
+
+GAIN_NAMES = ("kp", "ki", "kd", "kr", "kf")
+GAIN_UNITS = {"kp": "A/(N·m)", "ki": "A/(N·m·s)", "kd": "A·s/(N·m)", "kr": "-", "kf": "-"}
+
+
+class TorqueController(eqx.Module):
+    """The fixed part of the torque controller: its model for the feed-forward and its hardware.
+
+    **Arguments:**
+
+    - `friction`: identified `Parameters` whose eq. 9 friction is fed forward.
+    - `drive`: the drive constants (N, Km) of the feed-forward.
+    - `sample_period`: sensor sample period $T_s$ (s); the controller runs at this rate.
+    - `current_limit`: amplifier current limit $i_{max}$ (A).
+    - `saturation_scale`: smoothing scale $s$ of the saturation (A), see the module doc.
+    - `derivative_filter`: time constant of the measured-torque derivative filter (s).
+    - `friction_scale`: velocity scale of sign()/u() in the fed-forward friction (rad/s); keep it
+      above the tachometer noise, or the feed-forward chatters at standstill.
+    - `anti_windup`: back-calculation weight β (-), 0 switches it off.
+    """
+
+    friction: Parameters
+    drive: Drive
+    sample_period: float = eqx.field(static=True, default=1e-3)
+    current_limit: float = eqx.field(static=True, default=5.0)
+    saturation_scale: float = eqx.field(static=True, default=0.05)
+    derivative_filter: float = eqx.field(static=True, default=2e-3)
+    friction_scale: float = eqx.field(static=True, default=0.1)
+    anti_windup: float = eqx.field(static=True, default=0.5)
+
+
+class Plant(eqx.Module):
+    """The plant in the loop: `Parameters`, `Drive` and optional model extensions (`Effects`)."""
+
+    parameters: Parameters
+    drive: Drive
+    effects: Effects = Effects()
+
+
+class Reference(eqx.Module):
+    """A torque reference sampled at the controller's rate, with the output locked or free.
+
+    - `torque`: reference output torque $r_k$ (N·m) at $t_k = k\\,T_s$, from $t_0 = 0$ at rest.
+    - `free`: 1.0 with a free output (load inertia), 0.0 with the output locked.
+    """
+
+    torque: Float[Array, " time"] = eqx.field(converter=_as_float)
+    free: Float[Array, ""] = eqx.field(converter=_as_float)
+
+
+class LoopTrajectory(eqx.Module):
+    """Closed-loop signals at the sample instants $t_k$ (SI units); `current[k]` is held on
+    $[t_k, t_{k+1})$ and the plant signals are those at $t_k$ (before the new current acts)."""
+
+    time: Float[Array, " time"]
+    reference: Float[Array, " time"]
+    torque: Float[Array, " time"]
+    measured_torque: Float[Array, " time"]
+    motor_velocity: Float[Array, " time"]
+    output_velocity: Float[Array, " time"]
+    current: Float[Array, " time"]
+    command: Float[Array, " time"]
+
+
+def smooth_saturation(u: ArrayLike, limit: ArrayLike, scale: ArrayLike) -> Float[Array, "..."]:
+    """Smooth clip of `u` to ±`limit` with rounding scale `scale` (same unit), see the module doc."""
+    u = jnp.asarray(u)
+    return u - scale * (jnp.logaddexp(0.0, (u - limit) / scale) - jnp.logaddexp(0.0, (-u - limit) / scale))
+
+
+def step_reference(
+    amplitude: float, *, duration: float, sample_period: float = 1e-3, start: float = 0.02, free: bool = False
+) -> Reference:
+    """A torque step of `amplitude` (N·m) at time `start` (s), `duration` s long."""
+    n = int(round(duration / sample_period))
+    t = jnp.arange(n) * sample_period
+    return Reference(torque=jnp.where(t >= start - 0.5 * sample_period, amplitude, 0.0), free=float(free))
+
+
+def sine_reference(
+    amplitude: float, frequency: float, *, duration: float, sample_period: float = 1e-3, free: bool = False
+) -> Reference:
+    """A torque sine `amplitude·sin(2π·frequency·t)` (N·m, Hz), `duration` s long."""
+    n = int(round(duration / sample_period))
+    t = jnp.arange(n) * sample_period
+    return Reference(torque=amplitude * jnp.sin(2.0 * jnp.pi * frequency * t), free=float(free))
+
+
+def doublet_reference(
+    amplitude: float, width: float, *, duration: float, sample_period: float = 1e-3, start: float = 0.02,
+    free: bool = True,
+) -> Reference:
+    """A torque step of `amplitude` (N·m) at `start` (s), reversed to −`amplitude` after `width`
+    (s) and back to zero after another `width`: the free-motion step, which brings the load back to
+    rest instead of accelerating it without bound."""
+    n = int(round(duration / sample_period))
+    t = jnp.arange(n) * sample_period + 0.5 * sample_period
+    up = (t >= start) & (t < start + width)
+    down = (t >= start + width) & (t < start + 2 * width)
+    return Reference(torque=amplitude * (up.astype(float) - down.astype(float)), free=float(free))
+
+
+class _Held(eqx.Module):
+    """Zero-order-hold current as the plant's input: `value` from `t_k` on, `previous` before
+    (seen only through an `input_delay` effect)."""
+
+    t_k: Float[Array, ""]
+    previous: Float[Array, ""]
+    value: Float[Array, ""]
+
+    def evaluate(self, t):
+        return jnp.where(t < self.t_k, self.previous, self.value)
+
+
+def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing):
+    """The sampled loop shared by `closed_loop` and `relay_test`: measure at $t_k$, call
+    `law(state, r_k, y_k, w_k) -> (state, current, command)`, hold the current over the interval
+    and advance the plant by `substeps` fixed Rodas3 steps."""
+    p, drive, effects = plant.parameters, plant.drive, plant.effects
+    ts = sample_period
+    r = reference.torque
+    n = r.shape[0]
+    if noise is None:
+        nT = jnp.zeros(n)
+        nw = jnp.zeros(n)
+    else:
+        nT, nw = (jnp.broadcast_to(jnp.asarray(x, dtype=float), (n,)) for x in noise)
+    zero = jnp.zeros(())
+    y0 = (zero, zero, zero, zero)
+    if "rate_independent_hysteresis" in effects.active:
+        y0 = y0 + (zero,)
+    geometry = (zero, zero, zero)
+    solver = Rodas3()
+    term = dfx.ODETerm(_vector_field)
+    h = ts / substeps
+
+    def step(carry, inputs):
+        y, law_state, i_prev = carry
+        k, r_k, nT_k, nw_k = inputs
+        t_k = k * ts
+        th_m, _, _, T = _outputs(p, drive, y, geometry, effects, smoothing)
+        y_meas = T + effects.periodic("torque_sensor_ripple", th_m) + nT_k
+        w_meas = y[1] + nw_k
+        law_state, i, u = law(law_state, r_k, y_meas, w_meas)
+        args = (p, drive, _Held(t_k, i_prev, i), reference.free, zero, geometry, effects, smoothing)
+
+        def sub(j, yy):
+            t0 = t_k + j * h
+            y1, _, _, _, _ = solver.step(term, t0, t0 + h, yy, args, None, False)
+            return y1
+
+        y_next = jax.lax.fori_loop(0, substeps, sub, y)
+        return (y_next, law_state, i), (T, y_meas, y[1], y[3], i, u)
+
+    ks = jnp.arange(n, dtype=float)
+    _, (T, y_meas, wm, wo, i, u) = jax.lax.scan(step, (y0, law_state0, zero), (ks, r, nT, nw))
+    return LoopTrajectory(
+        time=ks * ts, reference=r, torque=T, measured_torque=y_meas, motor_velocity=wm, output_velocity=wo,
+        current=i, command=u,
+    )  # fmt: skip
+
+
+def closed_loop(
+    gains: TorqueGains,
+    plant: Plant,
+    reference: Reference,
+    *,
+    controller: TorqueController,
+    noise: tuple[ArrayLike, ArrayLike] | None = None,
+    substeps: int = 1,
+    smoothing: Smoothing = Smoothing(),
+) -> LoopTrajectory:
+    """Simulate the sampled torque loop on `plant` following `reference`; differentiable in all
+    array arguments (`jax.grad`, `jax.jacfwd`) and `vmap`-able over plants, references and noise.
+
+    **Arguments:**
+
+    - `gains`: `TorqueGains`.
+    - `plant`: `Plant` (the truth being controlled; its effects act, e.g. sensor ripple).
+    - `reference`: `Reference` (torque samples at `controller.sample_period`, locked or free).
+    - `controller`: `TorqueController` (feed-forward model, limits, sample period).
+    - `noise`: optional `(torque_noise, velocity_noise)` sample sequences (N·m, rad/s) added to
+      the measurements; default none.
+    - `substeps`: fixed Rodas3 steps per sample interval (1 is enough at 1 kHz, see the module doc).
+    - `smoothing`: the plant's smoothing scales (`Smoothing`).
+
+    **Returns:** a `LoopTrajectory`. The plant starts at rest (zero torsion, velocity and angle).
+    """
+    ts = controller.sample_period
+    N = controller.drive.gear_ratio
+    Km = controller.drive.torque_constant
+    ff_smoothing = Smoothing(velocity_scale=controller.friction_scale)
+    a = jnp.exp(-ts / controller.derivative_filter)
+
+    def law(state, r_k, y_meas, w_meas):
+        integ, dfilt, y_prev, first = state
+        e = r_k - y_meas
+        # derivative of the measured torque; the first sample has no predecessor
+        dfilt = a * dfilt + (1.0 - a) * (1.0 - first) * (y_meas - y_prev) / ts
+        ff = gains.kr * r_k / (N * Km) + gains.kf * friction_torque(controller.friction, w_meas, ff_smoothing) / Km
+        u = ff + gains.kp * e + integ - gains.kd * dfilt
+        i = smooth_saturation(u, controller.current_limit, controller.saturation_scale)
+        integ = integ + gains.ki * ts * e + controller.anti_windup * (i - u)
+        return (integ, dfilt, y_meas, jnp.zeros(())), i, u
+
+    zero = jnp.zeros(())
+    return _run_loop(
+        law, (zero, zero, zero, jnp.ones(())), plant, reference, sample_period=ts, noise=noise, substeps=substeps,
+        smoothing=smoothing,
+    )  # fmt: skip
+
+
+def relay_test(
+    plant: Plant,
+    *,
+    level: float,
+    amplitude: float,
+    sample_period: float = 1e-3,
+    duration: float = 1.0,
+    substeps: int = 1,
+    smoothing: Smoothing = Smoothing(),
+) -> LoopTrajectory:
+    """Åström–Hägglund relay experiment with the output locked: current
+    $i = i_0 + d\,\mathrm{sign}(r - y)$ about the torque `level` $r$ (N·m), with
+    $i_0 = r/(N K_m)$ and relay `amplitude` $d$ (A). The loop settles into a limit cycle whose
+    period and torque amplitude give the ultimate gain and period (`ziegler_nichols_pi`)."""
+    N = plant.drive.gear_ratio
+    Km = plant.drive.torque_constant
+    n = int(round(duration / sample_period))
+    ref = Reference(torque=jnp.full(n, float(level)), free=0.0)
+
+    def law(state, r_k, y_meas, w_meas):
+        i = r_k / (N * Km) + amplitude * jnp.sign(r_k - y_meas)
+        return state, i, i
+
+    return _run_loop(
+        law, jnp.zeros(()), plant, ref, sample_period=sample_period, noise=None, substeps=substeps, smoothing=smoothing
+    )
+
+
+def tracking_cost(
+    traj: LoopTrajectory, *, scale: ArrayLike, current_scale: ArrayLike = 1.0, effort_weight: float = 0.0
+) -> Float[Array, ""]:
+    r"""Normalised tracking cost of one closed-loop run (-):
+    $\overline{(r - T)^2}/s^2 + w_u\,\overline{i^2}/i_s^2$, with $T$ the true transmitted torque,
+    `scale` $s$ (N·m, e.g. the reference amplitude), `current_scale` $i_s$ (A) and `effort_weight`
+    $w_u$ (-)."""
+    err = jnp.mean((traj.reference - traj.torque) ** 2) / scale**2
+    return err + effort_weight * jnp.mean(traj.current**2) / current_scale**2
+
+
+def ziegler_nichols_pi(traj: LoopTrajectory, *, level: float, amplitude: float) -> tuple[TorqueGains, dict]:
+    """The classical rule-tuned PI from a `relay_test` record: ultimate gain
+    $K_u = 4d/(\\pi a)$ (A/(N·m)) from the torque oscillation amplitude $a$ over the second half
+    of the record, ultimate period $T_u$ (s) from its mean crossing interval, then Ziegler–Nichols
+    $k_p = 0.45K_u$, $k_i = k_p/(T_u/1.2)$. Returns the gains and the relay figures."""
+    t = np.asarray(traj.time)
+    y = np.asarray(traj.measured_torque) - level
+    half = t >= 0.5 * t[-1]
+    a = 0.5 * (y[half].max() - y[half].min())
+    yh, th = y[half], t[half]
+    up = np.nonzero((yh[:-1] < 0) & (yh[1:] >= 0))[0]
+    if len(up) < 3 or not np.isfinite(a) or a <= 0:
+        raise ValueError(
+            "relay test: no sustained oscillation in the second half of the record; raise the relay amplitude "
+            "(`tune.relay_amplitude`) above the friction level or lengthen the test."
+        )
+    tc = th[up] - yh[up] * (th[up + 1] - th[up]) / (yh[up + 1] - yh[up])
+    Tu = float(np.mean(np.diff(tc)))
+    Ku = 4.0 * amplitude / (np.pi * a)
+    kp = 0.45 * Ku
+    ki = kp / (Tu / 1.2)
+    return TorqueGains(kp=kp, ki=ki), {"ultimate_gain": float(Ku), "ultimate_period_s": Tu, "oscillation_amplitude": float(a)}
+
+
+def step_metrics(
+    time: ArrayLike, torque: ArrayLike, *, amplitude: float, start: float, end: float, band: float = 0.05
+) -> dict[str, float | None]:
+    """Overshoot (% of the step) and settling time (s after the step; into ±`band`·|amplitude| and
+    staying until `end`) of a torque step of `amplitude` (N·m) applied from `start` to `end` (s).
+    `settling_time_s` is None when the torque never settles before `end`."""
+    t = np.asarray(time)
+    y = np.asarray(torque)
+    win = (t >= start) & (t < end)
+    tw, yw = t[win], y[win]
+    s = np.sign(amplitude)
+    overshoot = max(0.0, float(np.max(s * yw) - abs(amplitude))) / abs(amplitude) * 100.0
+    outside = np.abs(yw - amplitude) > band * abs(amplitude)
+    if outside[-1]:
+        settle = None
+    else:
+        last = np.nonzero(outside)[0]
+        settle = float(tw[last[-1] + 1] - start) if len(last) else 0.0
+    return {"overshoot_percent": overshoot, "settling_time_s": settle}
+
+
+def tracking_rms(traj: LoopTrajectory) -> Float[Array, ""]:
+    """RMS of reference minus true transmitted torque (N·m)."""
+    return jnp.sqrt(jnp.mean((traj.reference - traj.torque) ** 2))
+
+
+# ----------------------------------------------------------------------------------------------
+# Gradient tuning
+# ----------------------------------------------------------------------------------------------
+
+
+class GainScaling(eqx.Module):
+    """Map between the optimiser's unconstrained, O(1) vector θ and `TorqueGains`:
+    $k_p = k_{p0}e^{\\theta_0}$, $k_i = k_{i0}e^{\\theta_1}$ (kept positive),
+    $k_d = k_{p0}\\,T_d\\,\\theta_2$, $k_r = \\theta_3$, $k_f = \\theta_4$; `start` is θ of the
+    starting gains (kd, kr, kf from the start gains)."""
+
+    kp0: float
+    ki0: float
+    derivative_time: float
+
+    def gains(self, theta: Float[Array, " 5"]) -> TorqueGains:
+        return TorqueGains(
+            kp=self.kp0 * jnp.exp(theta[0]), ki=self.ki0 * jnp.exp(theta[1]),
+            kd=self.kp0 * self.derivative_time * theta[2], kr=theta[3], kf=theta[4],
+        )  # fmt: skip
+
+    def theta(self, g: TorqueGains) -> Float[Array, " 5"]:
+        return jnp.stack([
+            jnp.log(g.kp / self.kp0), jnp.log(g.ki / self.ki0), g.kd / (self.kp0 * self.derivative_time), g.kr, g.kf,
+        ])  # fmt: skip
+
+
+def batch_cost(
+    gains: TorqueGains,
+    plants: Plant,
+    references: Reference,
+    *,
+    controller: TorqueController,
+    scales: Float[Array, " reference"],
+    noise: tuple[Float[Array, "reference time"], Float[Array, "reference time"]] | None = None,
+    effort_weight: float = 0.0,
+    substeps: int = 1,
+    smoothing: Smoothing = Smoothing(),
+) -> tuple[Float[Array, "plant reference"], Float[Array, "plant reference"]]:
+    """Tracking and tuning cost of every (plant, reference) pair, `vmap`ped over both.
+
+    `plants` is a `Plant` whose `parameters` leaves carry a leading `plant` axis (drive and
+    effects shared); `references` carries a leading `reference` axis, `scales` (N·m) normalise
+    each reference's error, `noise` holds measurement-noise sequences per reference (the same for
+    every plant: common random numbers). Tracking cost: $\\overline{(r-T)^2}/s^2$ (-); tuning cost
+    adds `effort_weight`·$\\overline{(\\Delta i)^2}/i_{max}^2$ (-), which charges current chatter.
+    Returns `(tracking, tuning)`, both of shape (plant, reference)."""
+    if noise is None:
+        zeros = jnp.zeros_like(references.torque)
+        noise = (zeros, zeros)
+
+    def one(params, ref, scale, nT, nw):
+        traj = closed_loop(
+            gains, Plant(params, plants.drive, plants.effects), ref, controller=controller, noise=(nT, nw),
+            substeps=substeps, smoothing=smoothing,
+        )  # fmt: skip
+        track = jnp.mean((traj.reference - traj.torque) ** 2) / scale**2
+        di = jnp.diff(traj.current)
+        effort = jnp.mean(di**2) / controller.current_limit**2
+        return track, track + effort_weight * effort
+
+    over_refs = jax.vmap(one, in_axes=(None, 0, 0, 0, 0))
+    over_plants = jax.vmap(over_refs, in_axes=(0, None, None, None, None))
+    return over_plants(plants.parameters, references, jnp.asarray(scales), noise[0], noise[1])
+
+
+class TuneResult(eqx.Module):
+    """Result of `tune_gains`: the tuned `gains`, the mean tuning cost at the start and at each
+    accepted iterate (`history`, -), the number of optimiser steps and whether it converged."""
+
+    gains: TorqueGains
+    history: list = eqx.field(static=True)
+    steps: int = eqx.field(static=True)
+    converged: bool = eqx.field(static=True)
+
+
+def tune_gains(
+    start: TorqueGains,
+    cost_fn,
+    *,
+    scaling: GainScaling,
+    max_steps: int = 40,
+    rtol: float = 1e-4,
+    atol: float = 1e-6,
+    log=None,
+) -> TuneResult:
+    """Minimise `cost_fn(gains) -> scalar` from `start` with optimistix BFGS (backtracking Armijo
+    line search) in the scaled coordinates of `scaling`; gradients by reverse-mode AD through the
+    closed loop. Steps are taken one by one so that the cost of every accepted iterate is kept."""
+    import optimistix as optx
+
+    solver = optx.BFGS(rtol=rtol, atol=atol)
+    fn = lambda theta, args: (cost_fn(scaling.gains(theta)), None)  # noqa: E731
+    theta = scaling.theta(start)
+    f_struct = jax.ShapeDtypeStruct((), theta.dtype)
+    state = solver.init(fn, theta, None, {}, f_struct, None, frozenset())
+    step = eqx.filter_jit(lambda th, st: solver.step(fn, th, None, {}, st, frozenset()))
+    terminate = eqx.filter_jit(lambda th, st: solver.terminate(fn, th, None, {}, st, frozenset()))
+    history = []
+    converged = False
+    n = 0
+    for n in range(1, max_steps + 1):
+        theta, state, _ = step(theta, state)
+        f = float(state.f_info.f)
+        if not history or f != history[-1]:
+            history.append(f)
+            if log is not None:
+                log(f"  step {n:3d}: cost {f:.5g}")
+        done, _ = terminate(theta, state)
+        if bool(done):
+            converged = True
+            break
+    return TuneResult(gains=scaling.gains(theta), history=history, steps=n, converged=converged)
