@@ -8,9 +8,14 @@ from ._cli import main_wrapper
 
 
 def _run(dataset, config, out):
+    from ._friction_cli import is_friction_only, run_diagnose as run_friction_diagnose
+
+    out = out.with_name(out.name + "-diagnosis") if out.parent.name == "results" else out
+    if is_friction_only(dataset):
+        return run_friction_diagnose(dataset, config, out)
     from ._diagnose_report import run_diagnose
 
-    run_diagnose(dataset, config, out.with_name(out.name + "-diagnosis") if out.parent.name == "results" else out)
+    run_diagnose(dataset, config, out)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,10 @@ from ._cli import main_wrapper
 
 
 def _run(dataset, config, out):
+    from ._friction_cli import is_friction_only, run_fit as run_friction_fit
+
+    if is_friction_only(dataset):
+        return run_friction_fit(dataset, config, out)
     from ._identify import run_fit
 
     run_fit(dataset, config, out)
