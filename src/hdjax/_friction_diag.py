@@ -81,7 +81,7 @@ def _lstsq_gain(A, r):
     return c, float(np.sum((r - A @ c) ** 2))
 
 
-def choose_orders(problem: FrictionProblem, theta, r, g, on, *, max_order: int, min_drop: float = 0.005):
+def choose_orders(problem: FrictionProblem, theta, r, g, on, *, max_order: int, min_drop: float = 0.1):
     """Greedy harmonic orders of `Σ g·(a sin kθ + b cos kθ)` explaining residual `r` on samples `on`:
     up to `MAX_ORDERS` orders, each kept only if it cuts the residual sum of squares by `min_drop`."""
     th, rr, gg = theta[on], r[on], g[on]
