@@ -218,6 +218,7 @@ def friction_diagnosis_doc(problem: FrictionProblem, dataset_name: str, *, min_g
         pred = r.prediction[0]
     for f in d.findings:
         ext_params[f["effect"]] = _finding_params(problem, fold, f["effect"])
+    span = max(float(np.ptp(np.asarray(problem.data.position)[e][problem.mask[e]])) for e in range(problem.E))
     findings = []
     for f in d.findings:
         b, a = f["before"], f["after"]
@@ -229,7 +230,8 @@ def friction_diagnosis_doc(problem: FrictionProblem, dataset_name: str, *, min_g
             "confidence": f["folds_improved"],
             "evidence": (f"{_PHYSICS[f['effect']]}: adding it cut the cross-validated held-out RMS from {b.rms:.4g} to "
                          f"{a.rms:.4g} N·m and lowered the held-out error in {f['folds_improved']:.0%} of "
-                         f"{len(d.rows.labels)} folds ({'; '.join(d.rows.labels)})."),
+                         f"{len(d.rows.labels)} folds ({'; '.join(d.rows.labels)})."
+                         + _span_note(fold, f["effect"], span)),
             "parameters": ext_params[f["effect"]],
             "gain": {"heldout_nrmse_before": {"friction_torque": b.nrmse},
                      "heldout_nrmse_after": {"friction_torque": a.nrmse},
@@ -266,6 +268,18 @@ def friction_diagnosis_doc(problem: FrictionProblem, dataset_name: str, *, min_g
                            "heldout_nrmse": {"friction_torque": d.final.nrmse}, "heldout_rms": d.final.rms},
     }
     return doc | {"_d": d, "_pred_ext": pred, "_pred_eq9": eq9.prediction[0]}
+
+
+def _span_note(fold, effect, span) -> str:
+    if effect not in ("position_dependent_friction", "position_dependent_torque"):
+        return ""
+    orders = np.asarray(fold.structure.ripple_orders if effect == "position_dependent_friction"
+                        else fold.structure.torque_orders)
+    long = [int(k) for k in orders if k > 0 and 2 * np.pi / k > span]
+    if not long:
+        return ""
+    return (f" Orders {long} have periods longer than the recorded angle range ({span:.3g} rad): there the term is "
+            "a smooth function of angle, not a resolved harmonic, and its amplitude and phase are not physical.")
 
 
 def problem_params_of(problem, fold):
