@@ -36,7 +36,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 import diffrax as dfx
 
@@ -44,6 +44,9 @@ from ._effects import Effects
 from ._model import Drive, Parameters, Smoothing, friction_torque
 from ._plant import _outputs, _vector_field
 from ._solver import Rodas3
+
+
+_REFINE_RTOL = 0.1  # relative part of the gross step-failure check (see the module doc)
 
 
 def _as_float(x):
@@ -131,6 +134,7 @@ class LoopTrajectory(eqx.Module):
     output_velocity: Float[Array, " time"]
     current: Float[Array, " time"]
     command: Float[Array, " time"]
+    refined: Bool[Array, " time"]
 
 
 def smooth_saturation(u: ArrayLike, limit: ArrayLike, scale: ArrayLike) -> Float[Array, "..."]:
@@ -183,10 +187,11 @@ class _Held(eqx.Module):
         return jnp.where(t < self.t_k, self.previous, self.value)
 
 
-def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing):
+def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing, refine=8):
     """The sampled loop shared by `closed_loop` and `relay_test`: measure at $t_k$, call
     `law(state, r_k, y_k, w_k) -> (state, current, command)`, hold the current over the interval
-    and advance the plant by `substeps` fixed Rodas3 steps."""
+    and advance the plant by `substeps` fixed Rodas3 steps; an interval whose embedded error
+    estimate fails the gross check of the module doc is redone with `refine`x finer steps."""
     p, drive, effects = plant.parameters, plant.drive, plant.effects
     ts = sample_period
     r = reference.torque
@@ -203,7 +208,8 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
     geometry = (zero, zero, zero)
     solver = Rodas3()
     term = dfx.ODETerm(_vector_field)
-    h = ts / substeps
+    # absolute error scales of the state (torsion worth 1 N·m, 1 rad/s, 1 mrad, 10 mrad/s, Dahl z)
+    scales = (1.0 / p.K1, 1.0, 1e-3, 1e-2, 1e-2)[: len(y0)]
 
     def step(carry, inputs):
         y, law_state, i_prev = carry
@@ -215,19 +221,34 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
         law_state, i, u = law(law_state, r_k, y_meas, w_meas)
         args = (p, drive, _Held(t_k, i_prev, i), reference.free, zero, geometry, effects, smoothing)
 
-        def sub(j, yy):
-            t0 = t_k + j * h
-            y1, _, _, _, _ = solver.step(term, t0, t0 + h, yy, args, None, False)
-            return y1
+        def advance(m):
+            hm = ts / (substeps * m)
 
-        y_next = jax.lax.fori_loop(0, substeps, sub, y)
-        return (y_next, law_state, i), (T, y_meas, y[1], y[3], i, u)
+            def sub(j, carry):
+                yy, err = carry
+                t0 = t_k + j * hm
+                y1, y_err, _, _, _ = solver.step(term, t0, t0 + hm, yy, args, None, False)
+                e = jnp.max(jnp.stack([
+                    jnp.abs(a) / (s + _REFINE_RTOL * jnp.maximum(jnp.abs(b), jnp.abs(c)))
+                    for a, b, c, s in zip(y_err, yy, y1, scales)
+                ]))  # fmt: skip
+                return y1, jnp.maximum(err, jnp.where(jnp.isfinite(e), e, jnp.inf))
+
+            return jax.lax.fori_loop(0, substeps * m, sub, (y, jnp.zeros(())))
+
+        y_a, err = advance(1)
+        bad = ~(err < 1.0)
+        # on a failed step, redo the interval with `refine`x finer steps, starting from a state that is
+        # finite in both branches so that no NaN leaks into the gradient of the branch not taken
+        y_b, _ = advance(refine)
+        y_next = jax.tree.map(lambda a, b: jnp.where(bad, b, jnp.where(jnp.isfinite(a), a, 0.0)), y_a, y_b)
+        return (y_next, law_state, i), (T, y_meas, y[1], y[3], i, u, bad)
 
     ks = jnp.arange(n, dtype=float)
-    _, (T, y_meas, wm, wo, i, u) = jax.lax.scan(step, (y0, law_state0, zero), (ks, r, nT, nw))
+    _, (T, y_meas, wm, wo, i, u, bad) = jax.lax.scan(step, (y0, law_state0, zero), (ks, r, nT, nw))
     return LoopTrajectory(
         time=ks * ts, reference=r, torque=T, measured_torque=y_meas, motor_velocity=wm, output_velocity=wo,
-        current=i, command=u,
+        current=i, command=u, refined=bad,
     )  # fmt: skip
 
 
@@ -239,6 +260,7 @@ def closed_loop(
     controller: TorqueController,
     noise: tuple[ArrayLike, ArrayLike] | None = None,
     substeps: int = 1,
+    refine: int = 4,
     smoothing: Smoothing = Smoothing(),
 ) -> LoopTrajectory:
     """Simulate the sampled torque loop on `plant` following `reference`; differentiable in all
@@ -252,7 +274,9 @@ def closed_loop(
     - `controller`: `TorqueController` (feed-forward model, limits, sample period).
     - `noise`: optional `(torque_noise, velocity_noise)` sample sequences (N·m, rad/s) added to
       the measurements; default none.
-    - `substeps`: fixed Rodas3 steps per sample interval (1 is enough at 1 kHz, see the module doc).
+    - `substeps`: fixed Rodas3 steps per sample interval (see the module doc).
+    - `refine`: an interval whose step fails the gross error check is redone with `refine`x
+      more steps (`LoopTrajectory.refined` marks it).
     - `smoothing`: the plant's smoothing scales (`Smoothing`).
 
     **Returns:** a `LoopTrajectory`. The plant starts at rest (zero torsion, velocity and angle).
@@ -277,7 +301,7 @@ def closed_loop(
     zero = jnp.zeros(())
     return _run_loop(
         law, (zero, zero, zero, jnp.ones(())), plant, reference, sample_period=ts, noise=noise, substeps=substeps,
-        smoothing=smoothing,
+        smoothing=smoothing, refine=refine,
     )  # fmt: skip
 
 
@@ -291,7 +315,7 @@ def relay_test(
     substeps: int = 1,
     smoothing: Smoothing = Smoothing(),
 ) -> LoopTrajectory:
-    """Åström–Hägglund relay experiment with the output locked: current
+    r"""Åström–Hägglund relay experiment with the output locked: current
     $i = i_0 + d\,\mathrm{sign}(r - y)$ about the torque `level` $r$ (N·m), with
     $i_0 = r/(N K_m)$ and relay `amplitude` $d$ (A). The loop settles into a limit cycle whose
     period and torque amplitude give the ultimate gain and period (`ziegler_nichols_pi`)."""
@@ -436,6 +460,24 @@ def batch_cost(
     return over_plants(plants.parameters, references, jnp.asarray(scales), noise[0], noise[1])
 
 
+@jax.custom_vjp
+def _clip_gradient(x, max_norm):
+    return x
+
+
+def _clip_fwd(x, max_norm):
+    return x, max_norm
+
+
+def _clip_bwd(max_norm, g):
+    n = jnp.sqrt(jnp.sum(g**2))
+    g = jnp.where(jnp.isfinite(n), g * jnp.minimum(1.0, max_norm / jnp.maximum(n, 1e-300)), jnp.zeros_like(g))
+    return g, None
+
+
+_clip_gradient.defvjp(_clip_fwd, _clip_bwd)
+
+
 class TuneResult(eqx.Module):
     """Result of `tune_gains`: the tuned `gains`, the mean tuning cost at the start and at each
     accepted iterate (`history`, -), the number of optimiser steps and whether it converged."""
@@ -454,15 +496,23 @@ def tune_gains(
     max_steps: int = 40,
     rtol: float = 1e-4,
     atol: float = 1e-6,
+    max_gradient: float = 1.0,
     log=None,
 ) -> TuneResult:
     """Minimise `cost_fn(gains) -> scalar` from `start` with optimistix BFGS (backtracking Armijo
     line search) in the scaled coordinates of `scaling`; gradients by reverse-mode AD through the
-    closed loop. Steps are taken one by one so that the cost of every accepted iterate is kept."""
+    closed loop. Steps are taken one by one so that the cost of every accepted iterate is kept.
+
+    `max_gradient` caps the gradient norm in θ (-). Where the closed loop is chaotic (a limit
+    cycle in stick-slip, e.g. a free-output step under an aggressive start), the gradient of a
+    0.5 s horizon is huge and meaningless (central differences disagree with it and with each
+    other); uncapped, BFGS's first trial step lands astronomically far and the line search spends
+    its whole budget backtracking. Ordinary gradients here are O(1e-2), so the cap acts only then;
+    the Armijo line search still accepts only true decreases of the cost."""
     import optimistix as optx
 
     solver = optx.BFGS(rtol=rtol, atol=atol)
-    fn = lambda theta, args: (cost_fn(scaling.gains(theta)), None)  # noqa: E731
+    fn = lambda theta, args: (cost_fn(scaling.gains(_clip_gradient(theta, max_gradient))), None)  # noqa: E731
     theta = scaling.theta(start)
     f_struct = jax.ShapeDtypeStruct((), theta.dtype)
     state = solver.init(fn, theta, None, {}, f_struct, None, frozenset())
