@@ -32,6 +32,26 @@ from ._plant import (
     simulate_batch as simulate_batch,
 )
 from ._solver import Rodas3 as Rodas3
+from ._fit import fit_parameters as fit_parameters
+from ._paper_id import identify_paper as identify_paper
+from ._diagnose import Diagnosis as Diagnosis, covariate_drifts as covariate_drifts, diagnose as diagnose_effects
+from ._friction import (
+    FrictionParameters as FrictionParameters,
+    FrictionStructure as FrictionStructure,
+    friction_model_torque as friction_model_torque,
+)
+from ._friction_fit import FrictionProblem as FrictionProblem
+from ._friction_diag import diagnose_friction as diagnose_friction
+from ._control import (
+    Plant as Plant,
+    Reference as Reference,
+    TorqueController as TorqueController,
+    TorqueGains as TorqueGains,
+    closed_loop as closed_loop,
+    sine_reference as sine_reference,
+    step_reference as step_reference,
+    tracking_cost as tracking_cost,
+)
 
 
 __version__ = importlib.metadata.version("hdjax")

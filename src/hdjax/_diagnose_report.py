@@ -4,7 +4,6 @@ figures (residual order spectra before/after, torque traces before/after)."""
 import pathlib
 import time
 
-import jax
 import matplotlib
 
 
@@ -13,12 +12,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ._data import Dataset
-from ._diagnose import diagnose
+from ._diagnose import covariate_drifts, diagnose
 from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR
 from ._experiment import stack_experiments
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._paper_id import identify_paper
-from ._plant import Simulator, simulate_batch
+from ._plant import Simulator
 
 
 def effects_to_dict(effects) -> dict:
@@ -38,6 +37,10 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     t_start = time.time()
     out = pathlib.Path(out)
     opts = dict(config.get("diagnose", {}) or {})
+    known = {"candidates", "base_steps", "max_findings", "min_relative_gain", "max_harm_ratio", "rtol"}
+    bad = sorted(set(opts) - known)
+    if bad:
+        raise ValueError(f"config `diagnose:` has unknown option(s) {bad}; known options: {sorted(known)}.")
     dyn = dataset.dynamic_indices()
     if dataset.drive is None or len(dyn) < 2:
         raise ValueError(
@@ -56,11 +59,15 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
         base_steps=int(opts.get("base_steps", 5)),
         max_findings=int(opts.get("max_findings", 3)),
         min_relative_gain=float(opts.get("min_relative_gain", 0.03)),
+        max_harm_ratio=float(opts.get("max_harm_ratio", 0.25)),
+        simulator=Simulator(rtol=float(opts.get("rtol", 1e-6)), atol=1e-8),
         log=log,
     )
+    drifts = covariate_drifts(paper.per_experiment, exps)
+    d.evidence["per_experiment_drifts"] = drifts
     log("[3/3] report and figures")
     figs = _figures(out, dataset, exps, files, d)
-    unexplained = []
+    unexplained = list(d.unexplained)
     if not d.findings:
         unexplained.append({
             "description": "no candidate effect improves held-out experiments significantly",
@@ -77,7 +84,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
         "candidates_by_round": d.rounds,
         "extended_model": {"parameters": d.params.to_dict(), "effects": effects_to_dict(d.effects)},
         "figures": figs,
-        "timing_s": {"total": time.time() - t_start},
+        "timing_s": {"total": time.time() - t_start, **{k: round(v, 2) for k, v in d.timing.items() if k != "total"}},
     }
     atomic_write_json(out / "diagnosis.json", result)
     atomic_write_json(out / "extended_model.json", result["extended_model"])
@@ -99,6 +106,22 @@ def _report(r: dict) -> str:
                          + ", ".join(f"{k} = {v:.4g}" for k, v in f["parameters"].items()) + f". Evidence: {f['evidence']}.")
     else:
         lines += ["No finding: no effect of the vocabulary improves experiments held out of its fit significantly.", ""]
+    if r["unexplained"]:
+        lines += ["", "## What the model still leaves unexplained", ""]
+        lines += [f"- {u['description']}: {u['evidence']}" for u in r["unexplained"]]
+    drifts = [x for x in r["evidence"].get("per_experiment_drifts", []) if x["p_value"] < 0.01]
+    if drifts:
+        lines += ["", "## The paper's consistency test as a detector", "",
+                  "Per-experiment estimates of the paper's regressions that drift with an experiment covariate "
+                  "(Spearman p < 0.01; evidence only, findings need a held-out gain):", ""]
+        lines += [f"- {x['parameter']} vs {x['covariate']}: ρ = {x['spearman_rho']:+.2f} (p = {x['p_value']:.1e}, "
+                  f"{x['n']} experiments)" + (f" — points at {x['points_at']}" if "points_at" in x else "") for x in drifts]
+    infl = r["evidence"].get("weight_inflation", {})
+    if infl:
+        lines += ["", "Residual weights: each channel is weighted by its sensor noise times the RMS of the paper "
+                  "model's weighted residual in that mode (process noise from the measured current, which drives "
+                  "the simulation, makes simulated motion wander): "
+                  + ", ".join(f"{k} ×{v:.2f}" for k, v in infl.items()) + "."]
     lines += ["", "## Candidates (held-out relative reduction of the weighted squared error, per round)", ""]
     for i, rnd in enumerate(r["candidates_by_round"]):
         lines.append(f"Round {i + 1}: " + ", ".join(f"{c} {100 * s['gain']:+.1f} %" for c, s in sorted(rnd.items(), key=lambda x: -x[1]["gain"])))
@@ -126,22 +149,21 @@ def _figures(out, dataset, exps, files, d) -> list[str]:
         atomic_savefig(fig, out / "residual_spectra.png", dpi=110, bbox_inches="tight")
         plt.close(fig)
         names.append("residual_spectra.png")
-    if d.findings:
+    if d.findings and d.traces:
         batch = stack_experiments(exps)
-        sim = jax.jit(lambda p, e, b: simulate_batch(p, dataset.drive, b, effects=e, simulator=Simulator(rtol=1e-6, atol=1e-8)))
-        base = sim(d.params, type(d.effects)(), batch)
-        ext = sim(d.params, d.effects, batch)
         m = np.asarray(batch.mask)
-        pick = [0, len(exps) - 1] if len(exps) > 1 else [0]
+        base_T, ext_T = d.traces["torque_base"], d.traces["torque_extended"]
+        free = np.asarray(batch.free) > 0
+        pick = [j for j in (int(np.argmax(~free)) if (~free).any() else None, int(np.argmax(free)) if free.any() else None)
+                if j is not None]
         fig, axes = plt.subplots(len(pick), 1, figsize=(8, 2.6 * len(pick)), squeeze=False)
         for ax, j in zip(axes[:, 0], pick):
             t = np.asarray(batch.time[j])[m[j]]
             meas = np.asarray(batch.torque[j])[m[j]]
-            ax.plot(t, meas - np.asarray(base.torque[j])[m[j]], color="0.6", lw=0.7, label="measured − paper model")
-            ax.plot(t, np.asarray(ext.torque[j])[m[j]] - np.asarray(base.torque[j])[m[j]], color="C3", lw=1.0,
-                    label="extended − paper model")
-            ax.set_ylabel("torque (N·m)")
-            ax.set_title(files[j], fontsize=9)
+            ax.plot(t, meas - base_T[j][m[j]], color="0.6", lw=0.7, label="measured − paper model")
+            ax.plot(t, ext_T[j][m[j]] - base_T[j][m[j]], color="C3", lw=1.0, label="extended − paper model")
+            ax.set_ylabel("torque residual (N·m)")
+            ax.set_title(f"{files[j]} ({'free' if free[j] else 'constrained'})", fontsize=9)
             ax.grid(alpha=0.3)
         axes[0, 0].legend(fontsize=8)
         axes[-1, 0].set_xlabel("time (s)")
@@ -149,4 +171,20 @@ def _figures(out, dataset, exps, files, d) -> list[str]:
         atomic_savefig(fig, out / "residual_before_after.png", dpi=110)
         plt.close(fig)
         names.append("residual_before_after.png")
+        # hysteresis loop of a constrained test: torque against torsion, measured vs both models
+        if (~free).any():
+            j = int(np.argmax(~free))
+            tw = d.traces["torsion_extended"][j][m[j]]
+            fig, ax = plt.subplots(figsize=(6, 4.5))
+            ax.plot(tw * 1e3, np.asarray(batch.torque[j])[m[j]], color="0.6", lw=0.6, label="measured")
+            ax.plot(tw * 1e3, base_T[j][m[j]], color="C0", lw=1.0, label="paper model")
+            ax.plot(tw * 1e3, ext_T[j][m[j]], color="C3", lw=1.0, ls="--", label="extended model")
+            ax.set_xlabel("torsion Δθ (mrad)")
+            ax.set_ylabel("torque T (N·m)")
+            ax.set_title(f"Hysteresis loop, {files[j]} (constrained)")
+            ax.legend(fontsize=8)
+            ax.grid(alpha=0.3)
+            atomic_savefig(fig, out / "hysteresis_before_after.png", dpi=110, bbox_inches="tight")
+            plt.close(fig)
+            names.append("hysteresis_before_after.png")
     return names
