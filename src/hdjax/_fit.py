@@ -32,6 +32,7 @@ from ._effects import Effects
 from ._experiment import Experiment
 from ._model import PARAMETER_NAMES, Drive, Parameters
 from ._plant import Simulator, simulate
+from ._sharding import experiment_mesh, replicated, shard_experiments
 
 
 CHANNELS = ("torque", "motor_velocity", "output_position")
@@ -218,6 +219,10 @@ def fit_parameters(
     pmap = make_parameter_map(p0, free)
     sigma = noise_levels(batch) if sigma is None else jnp.asarray(sigma)
     theta0 = pmap.to_theta(p0)
+    # several devices: split the experiment axis over all of them (masked dummies pad the batch)
+    mesh = experiment_mesh() if jax.device_count() > 1 else None
+    if mesh is not None:
+        batch, _ = shard_experiments(batch, mesh)
 
     def residuals(theta, args):
         p0_, drive_, batch_, sigma_ = args
@@ -232,6 +237,8 @@ def fit_parameters(
         sol = optx.least_squares(residuals, solver, theta0, args, max_steps=max_steps, throw=False)
         r = residuals(sol.value, args)
         J = jax.jacfwd(residuals)(sol.value, args)
+        if mesh is not None:  # every process can read the result (multi-host)
+            r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
         return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], r, J
 
     theta, ok, steps, r, J = run(theta0, (p0, drive, batch, sigma))

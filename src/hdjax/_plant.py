@@ -30,6 +30,7 @@ from ._experiment import Experiment
 from ._solver import Rodas3
 from ._effects import Effects, dahl_rate, stiffness_torque
 from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_basis
+from ._sharding import is_concrete, shard_experiments
 from ._smooth import smooth_signed_power
 
 
@@ -98,7 +99,7 @@ def _line_at_start(t: Array, y: Array, mask: Array, n: int) -> tuple[Array, Arra
     tt = t[:n] - t[0]
     yy = y[:n]
     w = mask[:n].astype(float)
-    sw = jnp.sum(w)
+    sw = jnp.maximum(jnp.sum(w), 1.0)  # an all-padding record (mask all False) starts at rest
     tm = jnp.sum(w * tt) / sw
     ym = jnp.sum(w * yy) / sw
     sxx = jnp.maximum(jnp.sum(w * (tt - tm) ** 2), 1e-300)
@@ -263,8 +264,15 @@ def simulate_batch(
     effects: Effects = Effects(),
     simulator: Simulator = Simulator(),
 ) -> Trajectory:
-    """`simulate` over a stacked batch (`stack_experiments`), one shared parameter set."""
-    return jax.vmap(lambda e: simulate(p, drive, e, effects=effects, simulator=simulator))(batch)
+    """`simulate` over a stacked batch (`stack_experiments`), one shared parameter set.
+
+    With several devices (`jax.device_count() > 1`) and a concrete batch, the experiment axis is
+    spread over all of them (`hdjax._sharding`); inside `jit` the caller's input shardings apply."""
+    run = jax.vmap(lambda e: simulate(p, drive, e, effects=effects, simulator=simulator))
+    if jax.device_count() > 1 and is_concrete(batch):
+        sharded, n = shard_experiments(batch)
+        return jax.tree.map(lambda x: x[:n], run(sharded))
+    return run(batch)
 
 
 

@@ -1,0 +1,104 @@
+r"""Spread the experiment axis of a stacked batch over every device with `jax.sharding`.
+
+Every experiment of a campaign is simulated independently (one `vmap` lane each), so the natural
+scale-out is data parallel: the leading `experiment` axis of a `stack_experiments` batch is split
+over a one-dimensional `jax.sharding.Mesh` named `"exp"` (`NamedSharding(mesh,
+PartitionSpec("exp"))`), and XLA's SPMD partitioner runs each device's share of the `vmap`ped ODE
+solves locally. Only the few reductions (the residual norm and $J^\top J$ inside
+Levenberg–Marquardt, the batched solver's "any lane still running" test) cross devices.
+
+The batch is padded to a multiple of the device count with *dummy experiments*: zero current and
+data on the first experiment's time grid, `mask` all False. A dummy starts at rest, stays at rest,
+and its residuals are zeroed by the mask like any padding, so it changes neither the cost nor the
+Jacobian's information; `simulate_batch` drops the dummies from its output.
+
+`fit_parameters` and `simulate_batch` call `shard_experiments` themselves when
+`jax.device_count() > 1` (one machine with several GPUs, or a CPU run with
+`XLA_FLAGS=--xla_force_host_platform_device_count=K`); nothing changes on one device.
+
+**Several hosts.** Start the same script on every host and call, before any other JAX call,
+
+```python
+jax.distributed.initialize(coordinator_address="host0:1234", num_processes=P, process_id=k)
+```
+
+(on Slurm / Cloud TPU the arguments are found automatically: `jax.distributed.initialize()`).
+`jax.devices()` then lists the devices of all hosts and the mesh spans them. Every process loads
+the whole dataset (a campaign is a few MB); `shard_experiments` builds the global array with
+`jax.make_array_from_callback`, each process supplying only the slices its own devices hold.
+`fit_parameters` replicates its final residual and Jacobian on every device so that each process
+can read the result. (Tested here on one host with several CPU devices only.)
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._experiment import Experiment
+
+
+AXIS = "exp"
+
+
+def experiment_mesh(devices=None) -> Mesh:
+    """A one-dimensional `Mesh` with axis name `"exp"` over `devices` (default: `jax.devices()`,
+    all devices of all processes)."""
+    devices = jax.devices() if devices is None else list(devices)
+    return Mesh(np.asarray(devices), (AXIS,))
+
+
+def pad_experiments(batch: Experiment, multiple: int) -> tuple[Experiment, int]:
+    """Append masked dummy experiments so that the batch size is a multiple of `multiple`.
+
+    A dummy has the first experiment's time grid, zero current and data, `mask` all False and
+    `free = 0` (output locked): it simulates at rest and its residuals are zero.
+
+    **Returns:** `(padded batch, number of real experiments)`.
+    """
+    n = int(batch.time.shape[0])
+    extra = (-n) % int(multiple)
+    if extra == 0:
+        return batch, n
+
+    def dummy(name, x):
+        x = np.asarray(x)
+        if name == "time":
+            fill = np.broadcast_to(x[:1], (extra,) + x.shape[1:])
+        else:
+            fill = np.zeros((extra,) + x.shape[1:], dtype=x.dtype)
+        return np.concatenate([x, fill])
+
+    fields = {name: jnp.asarray(dummy(name, getattr(batch, name))) for name in Experiment.__dataclass_fields__}
+    return Experiment(**fields), n
+
+
+def shard_experiments(batch: Experiment, mesh: Mesh | None = None) -> tuple[Experiment, int]:
+    """Pad `batch` to a multiple of the mesh size (`pad_experiments`) and place its experiment
+    axis on `mesh` (default `experiment_mesh()`) with `NamedSharding(mesh, PartitionSpec("exp"))`.
+
+    Works across processes (`jax.distributed`): every process passes the same whole batch and
+    supplies the slices its devices hold.
+
+    **Returns:** `(sharded batch, number of real experiments)`.
+    """
+    mesh = experiment_mesh() if mesh is None else mesh
+    padded, n = pad_experiments(batch, mesh.size)
+    sharding = NamedSharding(mesh, PartitionSpec(AXIS))
+
+    def place(x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+    return jax.tree.map(place, padded), n
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+    """The sharding that keeps a whole array on every device of `mesh`."""
+    return NamedSharding(mesh, PartitionSpec())
+
+
+def is_concrete(batch: Experiment) -> bool:
+    """True when the batch holds concrete arrays (not tracers inside `jit`/`vmap`/`grad`), i.e. when
+    it can be padded and placed on devices."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(batch))

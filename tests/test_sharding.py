@@ -1,0 +1,98 @@
+"""Sharding the experiment axis over several devices gives the one-device result.
+
+The same small problem (3 experiments, so the batch is padded with one masked dummy to fill 2
+devices) is run in two fresh processes: one with a single CPU device and one with
+`XLA_FLAGS=--xla_force_host_platform_device_count=2`; the sharded run must place the batch on both
+devices and reproduce the simulation and the fitted parameters to round-off."""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+
+SCRIPT = r"""
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from helpers import hd2
+import hdjax
+from hdjax._fit import fit_parameters
+from hdjax._sharding import shard_experiments
+
+p, drive = hd2()
+rng = np.random.default_rng(0)
+t = np.arange(0.0, 0.1, 1e-3)
+sim = hdjax.Simulator(fixed_step=5e-4)  # fixed steps: quick to compile, same sharding path
+exps = []
+for mode, A, f in (("constrained", 2.0, 5.0), ("free", 1.5, 3.0), ("free", 0.8, 2.0)):
+    i = A * np.sin(2 * np.pi * f * t) * np.minimum(1.0, t / 0.05)
+    z = np.zeros_like(t)
+    tr = hdjax.simulate(p, drive, hdjax.make_experiment(t, i, z, z, mode=mode, output_position=z), simulator=sim)
+    pos = np.round(np.asarray(tr.output_position) / 1e-4) * 1e-4 if mode == "free" else None
+    exps.append(hdjax.make_experiment(
+        t, i + rng.normal(0, 2e-3, len(t)), np.asarray(tr.torque) + rng.normal(0, 0.1, len(t)),
+        np.asarray(tr.motor_velocity) + rng.normal(0, 0.03, len(t)), mode=mode, output_position=pos))
+batch = hdjax.stack_experiments(exps)
+sharded, n = shard_experiments(batch)
+traj = hdjax.simulate_batch(p, drive, batch, simulator=sim)
+start = p.replace(K1=p.K1 * 1.2, Jeff=p.Jeff * 0.8, Tsp=p.Tsp * 1.3)
+res = fit_parameters(start, drive, batch, free=("K1", "Jeff", "Tsp"), simulator=sim, max_steps=4)
+print(json.dumps({
+    "devices": jax.device_count(),
+    "batch_devices": len(sharded.time.sharding.device_set),
+    "padded": int(sharded.time.shape[0]), "real": n,
+    "torque": np.asarray(traj.torque).tolist(),
+    "motor_velocity": np.asarray(traj.motor_velocity).tolist(),
+    "params": {k: float(getattr(res.params, k)) for k in ("K1", "Jeff", "Tsp")},
+    "chi2": res.chi2_reduced, "steps": res.steps,
+}))
+"""
+
+
+def _run(n_devices: int) -> dict:
+    env = dict(os.environ)
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f]
+    if n_devices > 1:  # first: XLA stops reading flags at a malformed one
+        flags.insert(0, f"--xla_force_host_platform_device_count={n_devices}")
+    env["XLA_FLAGS"] = " ".join(flags)
+    env["JAX_PLATFORMS"] = "cpu"
+    here = str(pathlib.Path(__file__).resolve().parent)
+    out = subprocess.run([sys.executable, "-c", SCRIPT, here], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return _run(1), _run(2)
+
+
+def test_batch_is_padded_and_spread_over_both_devices(runs):
+    one, two = runs
+    assert one["devices"] == 1 and one["padded"] == 3 and one["batch_devices"] == 1
+    assert two["devices"] == 2 and two["padded"] == 4 and two["real"] == 3 and two["batch_devices"] == 2
+
+
+def test_sharded_simulation_matches_one_device(runs):
+    one, two = runs
+    for k in ("torque", "motor_velocity"):
+        a, b = np.asarray(one[k]), np.asarray(two[k])
+        assert a.shape == b.shape == (3, 100)  # dummies dropped
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-10 * np.max(np.abs(a)))
+
+
+def test_sharded_fit_matches_one_device(runs):
+    one, two = runs
+    assert one["steps"] == two["steps"]
+    for k, v in one["params"].items():
+        assert abs(two["params"][k] / v - 1) < 1e-8, (k, v, two["params"][k])
+    assert abs(two["chi2"] / one["chi2"] - 1) < 1e-8
+    # the fit moved away from the perturbed start (the comparison is not of two untouched starts)
+    assert abs(one["params"]["K1"] / (1.2 * 104.2 * 180 / np.pi) - 1) > 0.05
