@@ -32,7 +32,7 @@ from ._effects import Effects
 from ._experiment import Experiment
 from ._model import PARAMETER_NAMES, Drive, Parameters
 from ._plant import Simulator, simulate
-from ._sharding import experiment_mesh, replicated, shard_experiments
+from ._sharding import experiment_mesh, map_experiments, replicated, shard_experiments
 
 
 CHANNELS = ("torque", "motor_velocity", "output_position")
@@ -227,7 +227,12 @@ def fit_parameters(
     def residuals(theta, args):
         p0_, drive_, batch_, sigma_ = args
         p = pmap.to_params(theta, p0_)
-        r = jax.vmap(lambda e: experiment_residuals(p, drive_, e, sigma_, simulator))(batch_)
+
+        def per_experiment(shared, b):
+            p_, d_, s_ = shared
+            return jax.vmap(lambda e: experiment_residuals(p_, d_, e, s_, simulator))(b)
+
+        r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
         return r.reshape(-1)
 
     # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which

@@ -3,9 +3,13 @@ r"""Spread the experiment axis of a stacked batch over every device with `jax.sh
 Every experiment of a campaign is simulated independently (one `vmap` lane each), so the natural
 scale-out is data parallel: the leading `experiment` axis of a `stack_experiments` batch is split
 over a one-dimensional `jax.sharding.Mesh` named `"exp"` (`NamedSharding(mesh,
-PartitionSpec("exp"))`), and XLA's SPMD partitioner runs each device's share of the `vmap`ped ODE
-solves locally. Only the few reductions (the residual norm and $J^\top J$ inside
-Levenberg–Marquardt, the batched solver's "any lane still running" test) cross devices.
+PartitionSpec("exp"))`), and `map_experiments` runs each device's share of the `vmap`ped ODE
+solves under `jax.shard_map`: every device steps its own experiments with its own while loops, and
+no collective sits inside a solver loop. (Leaving the `vmap`ped solver loops to XLA's automatic
+partitioner instead made the batched loops' termination test a cross-device reduction; the
+sharded fit then deadlocked intermittently on two forced host devices, the devices waiting at
+different all-reduces.) Only the reductions of Levenberg–Marquardt (residual norm, $J^\top J$)
+cross devices, outside the solver loops.
 
 The batch is padded to a multiple of the device count with *dummy experiments*: zero current and
 data on the first experiment's time grid, `mask` all False. A dummy starts at rest, stays at rest,
@@ -102,3 +106,18 @@ def is_concrete(batch: Experiment) -> bool:
     """True when the batch holds concrete arrays (not tracers inside `jit`/`vmap`/`grad`), i.e. when
     it can be padded and placed on devices."""
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(batch))
+
+
+def map_experiments(fn, mesh: Mesh | None):
+    """`fn(shared, batch)` → per-experiment outputs (leading `experiment` axis), run with
+    `jax.shard_map` so that each device of `mesh` maps `fn` over its own experiments; `shared` (a
+    PyTree, e.g. parameters) is replicated. With `mesh=None`, `fn` itself."""
+    if mesh is None:
+        return fn
+    return jax.shard_map(
+        fn,
+        mesh=mesh,
+        in_specs=(PartitionSpec(), PartitionSpec(AXIS)),
+        out_specs=PartitionSpec(AXIS),
+        check_vma=False,  # equinox's error branches (eqx.error_if) carry no varying-axis types
+    )
