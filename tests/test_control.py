@@ -43,36 +43,44 @@ def test_saturation_limits_and_passes():
 
 
 def test_gradient_matches_central_differences():
+    """Locked and free output in one vmapped run (one compilation); kj acts only when free."""
     plant, ctrl = _setup()
-    ref = sine_reference(10.0, 3.0, duration=0.15)
+    n = 100
+    refs = [sine_reference(10.0, 5.0, duration=n * 1e-3), sine_reference(3.0, 5.0, duration=n * 1e-3, free=True)]
+    R = jax.tree.map(lambda *x: jnp.stack(x), *refs)
     rng = np.random.default_rng(0)
-    noise = (rng.normal(size=150) * 0.1, rng.normal(size=150) * 0.03)
+    noise = (rng.normal(size=(2, n)) * 0.1, rng.normal(size=(2, n)) * 0.03)
 
     def cost(theta):
-        g = TorqueGains(kp=0.2 * jnp.exp(theta[0]), ki=100.0 * jnp.exp(theta[1]), kd=1e-4 * theta[2], kr=theta[3], kf=theta[4])
-        tr = closed_loop(g, plant, ref, controller=ctrl, noise=noise, substeps=2, smoothing=SM)
-        return jnp.mean((tr.reference - tr.torque) ** 2) / 100.0
+        g = TorqueGains(
+            kp=0.2 * jnp.exp(theta[0]), ki=100.0 * jnp.exp(theta[1]), kd=1e-4 * theta[2], kr=theta[3], kf=theta[4], kj=theta[5]
+        )
+        run = lambda r, a, b: closed_loop(g, plant, r, controller=ctrl, noise=(a, b), substeps=2, smoothing=SM)  # noqa: E731
+        tr = jax.vmap(run)(R, noise[0], noise[1])
+        return jnp.mean((tr.reference - tr.torque) ** 2, axis=1) / 100.0
 
-    th = jnp.array([0.1, -0.2, 0.5, 0.3, 0.5])
-    g = np.asarray(jax.jit(jax.grad(cost))(th))
+    th = jnp.array([0.1, -0.2, 0.5, 0.3, 0.5, 0.7])
+    g = np.asarray(jax.jit(jax.jacrev(cost))(th))  # (reference, gain)
     f = jax.jit(cost)
     h = 1e-5
-    fd = np.array([(f(th.at[i].add(h)) - f(th.at[i].add(-h))) / (2 * h) for i in range(5)])
+    fd = np.stack([(f(th.at[i].add(h)) - f(th.at[i].add(-h))) / (2 * h) for i in range(6)], axis=1)
     assert np.all(np.isfinite(g))
-    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+    for j in range(2):
+        assert (abs(fd[j, 5]) > 1e-3 * np.abs(fd[j]).max()) == bool(j), fd[j]
+        np.testing.assert_allclose(g[j], fd[j], rtol=1e-4, atol=1e-6 * np.abs(fd[j]).max())
 
 
 def test_tuning_beats_rule_tuned_pi():
     plant, ctrl = _setup()
     relay = relay_test(plant, level=8.0, amplitude=1.5, duration=0.6, smoothing=SM)
     base, info = ziegler_nichols_pi(relay, level=8.0, amplitude=1.5)
-    refs = [step_reference(15.0, duration=0.15), sine_reference(15.0, 3.0, duration=0.15)]
+    refs = [step_reference(15.0, duration=0.08), sine_reference(15.0, 6.0, duration=0.08)]
     R = jax.tree.map(lambda *x: jnp.stack(x), *refs)
     plants = Plant(jax.tree.map(lambda x: x[None], plant.parameters), plant.drive)
     scales = jnp.array([15.0, 15.0])
     cost = lambda g: jnp.mean(batch_cost(g, plants, R, controller=ctrl, scales=scales, substeps=2, smoothing=SM)[1])  # noqa: E731
     scaling = GainScaling(kp0=float(base.kp), ki0=float(base.ki), derivative_time=info["ultimate_period_s"] / 8)
-    res = tune_gains(base, cost, scaling=scaling, max_steps=12)
+    res = tune_gains(base, cost, scaling=scaling, max_steps=6)
     before, after = float(cost(base)), float(cost(res.gains))
     assert res.history[0] == pytest.approx(before, rel=1e-9)
     assert after < 0.7 * before, (before, after, res.gains.to_dict())

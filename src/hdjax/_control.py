@@ -6,9 +6,10 @@ The loop (SI units), at every sample instant $t_k = k\,T_s$ of the torque sensor
    `torque_sensor_ripple` effect if any) and wave-generator velocity $w_k = \omega_m(t_k) + n^\omega_k$
    (tachometer);
 2. control law, PI(D) on measured torque plus model-based feed-forward:
-   $$u_k = k_r\frac{r_k}{N K_m} + k_p e_k + I_k - k_d\,\dot y^f_k + k_f\frac{\hat T_f(w_k)}{K_m},
-   \qquad e_k = r_k - y_k,$$
-   with $\hat T_f$ the identified friction (eq. 9, sign/step smoothed on the scale
+   $$u_k = k_r\frac{r_k}{N K_m} + k_j\frac{N \hat J_{eff}\,r_k}{J_L K_m} + k_p e_k + I_k
+   - k_d\,\dot y^f_k + k_f\frac{\hat T_f(w_k)}{K_m}, \qquad e_k = r_k - y_k,$$
+   with $J_L$ the load inertia ($\infty$, so no inertia term, with the output locked), $\hat J_{eff}$
+   and $\hat T_f$ the identified motor inertia and friction (eq. 9, sign/step smoothed on the scale
    `friction_scale`, because the tachometer is noisy), $\dot y^f$ the measured-torque derivative
    through a first-order filter (time constant `derivative_filter`; derivative on measurement, so
    a reference step gives no kick);
@@ -22,14 +23,26 @@ The loop (SI units), at every sample instant $t_k = k\,T_s$ of the torque sensor
 5. zero-order hold: the plant (`hdjax._plant`'s vector field, with any `hdjax.Effects`) runs from
    $t_k$ to $t_{k+1}$ with the current $i_k$.
 
-Numerics (measured, see `benchmarks/tune_numerics.py`): the plant is stiff (power-law damping
-$|\dot{\Delta\theta}|^{1/2}$ and the smoothed Coulomb step give Jacobian eigenvalues of
-$10^4$–$10^5\,\mathrm{s^{-1}}$), the input is constant on each sample interval, and the controller
-state changes only at the samples. So the loop is a `lax.scan` over sample intervals and each
-interval is integrated by `substeps` fixed steps of the L-stable Rosenbrock method `Rodas3`
-(`hdjax._solver`, called step by step rather than through `diffeqsolve`, which costs a while loop
-per interval). The discrete closed loop is then a smooth function of the gains, which is what
-`jax.grad` and the central-difference test need.
+Numerics (measured on HD2 at 1 kHz by `benchmarks/tune_numerics.py`, against 64 substeps): the plant
+is stiff (power-law damping $|\dot{\Delta\theta}|^{1/2}$ and the smoothed Coulomb step give
+Jacobian eigenvalues of $10^4$–$10^5\,\mathrm{s^{-1}}$), the input is constant on each sample
+interval, and the controller state changes only at the samples. So the loop is a `lax.scan` over
+sample intervals and each interval is integrated by `substeps` fixed steps of the L-stable
+Rosenbrock method `Rodas3` (`hdjax._solver`, called step by step rather than through
+`diffeqsolve`, which costs a while loop per interval). One substep per sample is *not* enough
+(relative RMS torque error 1–23 %, worst on a free-output step); 2 substeps give 0.15–1.2 % (the
+tuning model), 4 give 0.02–0.5 %, 16 give 2e-5–2e-3 (the bench). The discrete closed loop is a
+smooth function of the gains: reverse-mode gradients match central differences with h = 1e-6 to
+1e-5 relative or better at the tuning smoothing; with h = 1e-4 they can differ by up to 30 % under an
+aggressive PI on a free-output step, where the cost is rugged on that scale (nearly chaotic
+stick-slip), which is why `hdjax._tune` starts BFGS from a grid search.
+
+Refinement (`refine` > 1, the default): an interval whose embedded error estimate fails the gross
+check (error above 1 absolute scale + 10 % relative) is recomputed with `refine`x finer steps;
+`LoopTrajectory.refined` flags it. Under `vmap` both branches are always computed, so it costs
+`1 + refine` times the run time. Noise-free, it fired only at 1 substep in the benchmark, but with
+HD2's measurement noise and sensor ripple in the loop the unrefined 2- and 16-substep loops blow
+up (bench cost 1.6 instead of 0.03 for the same PI), so it stays on; `refine=1` switches it off.
 """
 
 import equinox as eqx
@@ -61,6 +74,9 @@ class TorqueGains(eqx.Module):
     - `kd`: derivative gain on the filtered measured torque (A·s/(N·m)).
     - `kr`: reference feed-forward, as a multiple of the static locked gain $1/(N K_m)$ (-).
     - `kf`: weight of the friction feed-forward $\\hat T_f(w)/K_m$ (-; 1 = the identified friction).
+    - `kj`: weight of the motor-inertia feed-forward $N\\hat J_{eff}\\,r/(J_L K_m)$ (-; 1 = the
+      identified inertia): the current that accelerates the motor along with a free load of
+      inertia $J_L$; zero with the output locked ($J_L = \\infty$).
     """
 
     kp: Float[Array, ""] = eqx.field(converter=_as_float)
@@ -68,13 +84,14 @@ class TorqueGains(eqx.Module):
     kd: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
     kr: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
     kf: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
+    kj: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
 
     def to_dict(self) -> dict[str, float]:
         return {k: float(getattr(self, k)) for k in GAIN_NAMES}
 
 
-GAIN_NAMES = ("kp", "ki", "kd", "kr", "kf")
-GAIN_UNITS = {"kp": "A/(N·m)", "ki": "A/(N·m·s)", "kd": "A·s/(N·m)", "kr": "-", "kf": "-"}
+GAIN_NAMES = ("kp", "ki", "kd", "kr", "kf", "kj")
+GAIN_UNITS = {"kp": "A/(N·m)", "ki": "A/(N·m·s)", "kd": "A·s/(N·m)", "kr": "-", "kf": "-", "kj": "-"}
 
 
 class TorqueController(eqx.Module):
@@ -237,6 +254,9 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
             return jax.lax.fori_loop(0, substeps * m, sub, (y, jnp.zeros(())))
 
         y_a, err = advance(1)
+        if refine <= 1:  # no refinement: one pass, failed steps only flagged
+            y_next = y_a
+            return (y_next, law_state, i), (T, y_meas, y[1], y[3], i, u, ~(err < 1.0))
         bad = ~(err < 1.0)
         # on a failed step, redo the interval with `refine`x finer steps, starting from a state that is
         # finite in both branches so that no NaN leaks into the gradient of the branch not taken
@@ -275,8 +295,9 @@ def closed_loop(
     - `noise`: optional `(torque_noise, velocity_noise)` sample sequences (N·m, rad/s) added to
       the measurements; default none.
     - `substeps`: fixed Rodas3 steps per sample interval (see the module doc).
-    - `refine`: an interval whose step fails the gross error check is redone with `refine`x
-      more steps (`LoopTrajectory.refined` marks it).
+    - `refine`: if > 1, an interval whose step fails the gross error check is redone with
+      `refine`x more steps; either way `LoopTrajectory.refined` marks it (see the module doc;
+      needed with noisy measurements on HD2).
     - `smoothing`: the plant's smoothing scales (`Smoothing`).
 
     **Returns:** a `LoopTrajectory`. The plant starts at rest (zero torsion, velocity and angle).
@@ -286,13 +307,19 @@ def closed_loop(
     Km = controller.drive.torque_constant
     ff_smoothing = Smoothing(velocity_scale=controller.friction_scale)
     a = jnp.exp(-ts / controller.derivative_filter)
+    # N·Jeff/J_L (1/(m·...)): motor-side inertia torque per N·m of free output torque; 0 when locked
+    inertia_ff = reference.free * N * controller.friction.Jeff / controller.drive.load_inertia
 
     def law(state, r_k, y_meas, w_meas):
         integ, dfilt, y_prev, first = state
         e = r_k - y_meas
         # derivative of the measured torque; the first sample has no predecessor
         dfilt = a * dfilt + (1.0 - a) * (1.0 - first) * (y_meas - y_prev) / ts
-        ff = gains.kr * r_k / (N * Km) + gains.kf * friction_torque(controller.friction, w_meas, ff_smoothing) / Km
+        ff = (
+            gains.kr * r_k / (N * Km)
+            + gains.kj * inertia_ff * r_k / Km
+            + gains.kf * friction_torque(controller.friction, w_meas, ff_smoothing) / Km
+        )
         u = ff + gains.kp * e + integ - gains.kd * dfilt
         i = smooth_saturation(u, controller.current_limit, controller.saturation_scale)
         integ = integ + gains.ki * ts * e + controller.anti_windup * (i - u)
@@ -402,22 +429,22 @@ def tracking_rms(traj: LoopTrajectory) -> Float[Array, ""]:
 class GainScaling(eqx.Module):
     """Map between the optimiser's unconstrained, O(1) vector θ and `TorqueGains`:
     $k_p = k_{p0}e^{\\theta_0}$, $k_i = k_{i0}e^{\\theta_1}$ (kept positive),
-    $k_d = k_{p0}\\,T_d\\,\\theta_2$, $k_r = \\theta_3$, $k_f = \\theta_4$; `start` is θ of the
-    starting gains (kd, kr, kf from the start gains)."""
+    $k_d = k_{p0}\\,T_d\\,\\theta_2$, $k_r = \\theta_3$, $k_f = \\theta_4$, $k_j = \\theta_5$."""
 
     kp0: float
     ki0: float
     derivative_time: float
 
-    def gains(self, theta: Float[Array, " 5"]) -> TorqueGains:
+    def gains(self, theta: Float[Array, " 6"]) -> TorqueGains:
         return TorqueGains(
             kp=self.kp0 * jnp.exp(theta[0]), ki=self.ki0 * jnp.exp(theta[1]),
-            kd=self.kp0 * self.derivative_time * theta[2], kr=theta[3], kf=theta[4],
+            kd=self.kp0 * self.derivative_time * theta[2], kr=theta[3], kf=theta[4], kj=theta[5],
         )  # fmt: skip
 
-    def theta(self, g: TorqueGains) -> Float[Array, " 5"]:
+    def theta(self, g: TorqueGains) -> Float[Array, " 6"]:
         return jnp.stack([
             jnp.log(g.kp / self.kp0), jnp.log(g.ki / self.ki0), g.kd / (self.kp0 * self.derivative_time), g.kr, g.kf,
+            g.kj,
         ])  # fmt: skip
 
 
