@@ -78,7 +78,7 @@ def test_tuning_beats_rule_tuned_pi():
     R = jax.tree.map(lambda *x: jnp.stack(x), *refs)
     plants = Plant(jax.tree.map(lambda x: x[None], plant.parameters), plant.drive)
     scales = jnp.array([15.0, 15.0])
-    cost = lambda g: jnp.mean(batch_cost(g, plants, R, controller=ctrl, scales=scales, substeps=2, smoothing=SM)[1])  # noqa: E731
+    cost = lambda g: jnp.mean(batch_cost(g, plants, R, controller=ctrl, scales=scales, substeps=2, refine=1, smoothing=SM)[1])  # noqa: E731
     scaling = GainScaling(kp0=float(base.kp), ki0=float(base.ki), derivative_time=info["ultimate_period_s"] / 8)
     res = tune_gains(base, cost, scaling=scaling, max_steps=6)
     before, after = float(cost(base)), float(cost(res.gains))

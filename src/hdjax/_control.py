@@ -458,6 +458,7 @@ def batch_cost(
     noise: tuple[Float[Array, "reference time"], Float[Array, "reference time"]] | None = None,
     effort_weight: float = 0.0,
     substeps: int = 1,
+    refine: int = 4,
     smoothing: Smoothing = Smoothing(),
 ) -> tuple[Float[Array, "plant reference"], Float[Array, "plant reference"]]:
     """Tracking and tuning cost of every (plant, reference) pair, `vmap`ped over both.
@@ -465,7 +466,7 @@ def batch_cost(
     `plants` is a `Plant` whose `parameters` leaves carry a leading `plant` axis (drive and
     effects shared); `references` carries a leading `reference` axis, `scales` (N·m) normalise
     each reference's error, `noise` holds measurement-noise sequences per reference (the same for
-    every plant: common random numbers). Tracking cost: $\\overline{(r-T)^2}/s^2$ (-); tuning cost
+    every plant: common random numbers); `substeps`, `refine` as in `closed_loop`. Tracking cost: $\\overline{(r-T)^2}/s^2$ (-); tuning cost
     adds `effort_weight`·$\\overline{(\\Delta i)^2}/i_{max}^2$ (-), which charges current chatter.
     Returns `(tracking, tuning)`, both of shape (plant, reference)."""
     if noise is None:
@@ -475,7 +476,7 @@ def batch_cost(
     def one(params, ref, scale, nT, nw):
         traj = closed_loop(
             gains, Plant(params, plants.drive, plants.effects), ref, controller=controller, noise=(nT, nw),
-            substeps=substeps, smoothing=smoothing,
+            substeps=substeps, refine=refine, smoothing=smoothing,
         )  # fmt: skip
         track = jnp.mean((traj.reference - traj.torque) ** 2) / scale**2
         di = jnp.diff(traj.current)
