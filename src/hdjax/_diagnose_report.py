@@ -37,7 +37,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     t_start = time.time()
     out = pathlib.Path(out)
     opts = dict(config.get("diagnose", {}) or {})
-    known = {"candidates", "base_steps", "max_findings", "min_relative_gain", "max_harm_ratio", "rtol"}
+    known = {"candidates", "base_steps", "max_findings", "min_relative_gain", "rtol"}
     bad = sorted(set(opts) - known)
     if bad:
         raise ValueError(f"config `diagnose:` has unknown option(s) {bad}; known options: {sorted(known)}.")
@@ -59,7 +59,6 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
         base_steps=int(opts.get("base_steps", 5)),
         max_findings=int(opts.get("max_findings", 3)),
         min_relative_gain=float(opts.get("min_relative_gain", 0.03)),
-        max_harm_ratio=float(opts.get("max_harm_ratio", 0.25)),
         simulator=Simulator(rtol=float(opts.get("rtol", 1e-6)), atol=1e-8),
         log=log,
     )
