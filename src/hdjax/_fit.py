@@ -235,11 +235,26 @@ def fit_parameters(
         r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
         return r.reshape(-1)
 
+    # LM linearises the residuals at every iterate and applies the linearisation several times
+    # (materialising J, predicted reduction); through the solver's while loops each application
+    # re-runs the ODE solve. Materialising J once per iterate (forward mode) and answering every
+    # JVP with J @ t is the same arithmetic up to round-off, with 39 % less time per LM step and
+    # 25 % less compilation (measured, benchmarks/RESULTS.md).
+    @jax.custom_jvp
+    def residuals_lm(theta, args):
+        return residuals(theta, args)
+
+    @residuals_lm.defjvp
+    def _residuals_lm_jvp(primals, tangents):
+        (theta, args), (dtheta, _) = primals, tangents  # the data are never differentiated
+        J, r = jax.jacfwd(lambda t: (lambda r: (r, r))(residuals(t, args)), has_aux=True)(theta)
+        return r, J @ dtheta
+
     # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which
     # XLA would try to constant-fold)
     @eqx.filter_jit
     def run(theta0, args):
-        sol = optx.least_squares(residuals, solver, theta0, args, max_steps=max_steps, throw=False)
+        sol = optx.least_squares(residuals_lm, solver, theta0, args, max_steps=max_steps, throw=False)
         r = residuals(sol.value, args)
         J = jax.jacfwd(residuals)(sol.value, args)
         if mesh is not None:  # every process can read the result (multi-host)
