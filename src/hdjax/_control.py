@@ -54,16 +54,12 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 import diffrax as dfx
 
 from ._effects import Effects
-from ._model import Drive, Parameters, Smoothing, friction_torque
+from ._model import Drive, Parameters, Smoothing, _as_float, friction_torque
 from ._plant import _outputs, _vector_field
 from ._solver import Rodas3
 
 
 _REFINE_RTOL = 0.1  # relative part of the gross step-failure check (see the module doc)
-
-
-def _as_float(x):
-    return jnp.asarray(x, dtype=float)
 
 
 class TorqueGains(eqx.Module):

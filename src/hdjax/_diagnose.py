@@ -319,9 +319,8 @@ def diagnose(
         log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
         J = jacobian(z_cur, sel)
         sse_cur = float(np.sum(r_cur**2))
-        r_lin = r_cur
         for it in range(refine_steps):
-            delta = _gn_step(r_lin, J, all_rows, [col_of[j] for j in active])
+            delta = _gn_step(r_cur, J, all_rows, [col_of[j] for j in active])
             improved = False
             for frac in (1.0, 0.5, 0.25):
                 z = z_cur.copy()
@@ -334,7 +333,7 @@ def diagnose(
             if not improved:
                 break
             gain_it = 1.0 - sse / sse_cur
-            z_cur, r_cur, sse_cur, r_lin = z, r, sse, r
+            z_cur, r_cur, sse_cur = z, r, sse
             log(f"  refit: weighted SSE {sse_cur:.5g} (step fraction {frac}, −{100 * gain_it:.2f} %)")
             if gain_it < 1e-3:
                 break

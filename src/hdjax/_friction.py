@@ -38,27 +38,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._model import Smoothing
+from ._model import PARAMETER_UNITS, Smoothing, _as_float
 from ._smooth import smooth_sign, smooth_step
 
 
 FRICTION_NAMES = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")
-FRICTION_UNITS = {
-    "Tvp": "N·m·s/rad",
-    "Tvn": "N·m·s/rad",
-    "Tsp": "N·m",
-    "Tsn": "N·m",
-    "Tssp1": "N·m",
-    "Tssn1": "N·m",
-    "Tss2": "rad/s",
-}
+FRICTION_UNITS = {k: PARAMETER_UNITS[k] for k in FRICTION_NAMES}
 EXTENSION_NAMES = ("position_dependent_friction", "position_dependent_torque", "presliding_friction", "thermal_drift")
 MAX_ORDERS = 3  # harmonic slots per periodic extension
 STATE_SCALE = 1e-3  # smoothing scale of u(s) on the dimensionless presliding state
-
-
-def _f(x):
-    return jnp.asarray(x, dtype=float)
 
 
 def _f3(x):
@@ -75,20 +63,20 @@ class FrictionParameters(eqx.Module):
     - `thermal_beta` (-), `thermal_tau` (s): $\\beta$, $\\tau$ of `thermal_drift`.
     """
 
-    Tvp: Float[Array, ""] = eqx.field(converter=_f)
-    Tvn: Float[Array, ""] = eqx.field(converter=_f)
-    Tsp: Float[Array, ""] = eqx.field(converter=_f)
-    Tsn: Float[Array, ""] = eqx.field(converter=_f)
-    Tssp1: Float[Array, ""] = eqx.field(converter=_f)
-    Tssn1: Float[Array, ""] = eqx.field(converter=_f)
-    Tss2: Float[Array, ""] = eqx.field(converter=_f)
+    Tvp: Float[Array, ""] = eqx.field(converter=_as_float)
+    Tvn: Float[Array, ""] = eqx.field(converter=_as_float)
+    Tsp: Float[Array, ""] = eqx.field(converter=_as_float)
+    Tsn: Float[Array, ""] = eqx.field(converter=_as_float)
+    Tssp1: Float[Array, ""] = eqx.field(converter=_as_float)
+    Tssn1: Float[Array, ""] = eqx.field(converter=_as_float)
+    Tss2: Float[Array, ""] = eqx.field(converter=_as_float)
     ripple_sin: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
     ripple_cos: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
     torque_sin: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
     torque_cos: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
-    presliding_distance: Float[Array, ""] = eqx.field(converter=_f, default=1e-3)
-    thermal_beta: Float[Array, ""] = eqx.field(converter=_f, default=0.0)
-    thermal_tau: Float[Array, ""] = eqx.field(converter=_f, default=600.0)
+    presliding_distance: Float[Array, ""] = eqx.field(converter=_as_float, default=1e-3)
+    thermal_beta: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
+    thermal_tau: Float[Array, ""] = eqx.field(converter=_as_float, default=600.0)
 
     def eq9(self) -> dict[str, float]:
         """The seven eq. 9 values as Python floats."""
@@ -105,8 +93,8 @@ class FrictionStructure(eqx.Module):
 
     ripple_orders: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
     torque_orders: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
-    presliding: Float[Array, ""] = eqx.field(converter=_f, default=0.0)
-    thermal: Float[Array, ""] = eqx.field(converter=_f, default=0.0)
+    presliding: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
+    thermal: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
 
 
 def presliding_state(
