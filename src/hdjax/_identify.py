@@ -16,7 +16,7 @@ import numpy as np
 
 from ._data import Dataset
 from ._experiment import stack_experiments
-from ._fit import DEFAULT_FREE, fit_parameters, nrmse
+from ._fit import DEFAULT_FREE, fit_per_experiment, fit_parameters, nrmse
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Parameters, compliance_torque
 from ._paper_id import identify_paper
@@ -28,7 +28,16 @@ DEFAULTS = {
     "alpha": 0.5,
     "Tss2": 0.1,
     "cutoff_hz": 50.0,
-    "trajectory": {"free": list(DEFAULT_FREE), "fit_alpha": False, "max_experiments": 12, "max_steps": 20, "rtol": 1e-6},
+    "trajectory": {
+        "free": list(DEFAULT_FREE),
+        "fit_alpha": False,
+        "max_experiments": 12,
+        "max_steps": 20,
+        "rtol": 1e-5,
+        "cost_rtol": 1e-5,
+        "per_experiment": True,
+        "per_experiment_max_steps": 12,
+    },
 }
 
 
@@ -112,8 +121,38 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     batch = stack_experiments([exps[j] for j in sel_pos])
     sim_fit = Simulator(rtol=float(opts["trajectory"]["rtol"]), atol=float(opts["trajectory"]["rtol"]) * 1e-2)
     t0 = time.time()
-    res = fit_parameters(p0, drive, batch, free=free_names, simulator=sim_fit, max_steps=int(opts["trajectory"]["max_steps"]))
+    cost_rtol = float(opts["trajectory"]["cost_rtol"])
+    res = fit_parameters(
+        p0, drive, batch, free=free_names, simulator=sim_fit, max_steps=int(opts["trajectory"]["max_steps"]),
+        cost_rtol=cost_rtol,
+    )
     t_traj = time.time() - t0
+    log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({t_traj:.1f} s)")
+
+    # the trajectory method's consistency: one LM fit per experiment (vmap), each experiment fitting
+    # what the paper's regressions take from it (locked: K1, Tst; fast free motion: Jeff and the
+    # viscous/Coulomb terms of the directions it covers; slow free motion: Stribeck), the rest fixed
+    # at the joint estimate
+    per_fit, t_per = None, 0.0
+    if opts["trajectory"]["per_experiment"]:
+        mask = np.array([[np.isfinite(paper.per_experiment[k][j]) for k in res.free] for j in range(len(exps))], dtype=bool)
+        if mask.any():
+            log(f"[2b/4] per-experiment trajectory-error fits ({int(mask.any(axis=1).sum())} experiments, vmap)")
+            t0 = time.time()
+            per_fit = fit_per_experiment(
+                res.params, drive, stack_experiments(exps), mask, free=res.free, simulator=sim_fit, sigma=res.sigma,
+                max_steps=int(opts["trajectory"]["per_experiment_max_steps"]),
+                cost_rtol=cost_rtol,
+            )
+            t_per = time.time() - t0
+            bad = [files[j] for j in range(len(exps)) if mask[j].any() and not per_fit.converged[j]]
+            if bad:
+                notes.append(
+                    f"per-experiment trajectory fit: Levenberg–Marquardt did not converge within "
+                    f"{opts['trajectory']['per_experiment_max_steps']} steps for {', '.join(bad)} "
+                    "(`fit.trajectory.per_experiment_max_steps`); these are left out of the consistency measure."
+                )
+            log(f"      {int(per_fit.converged[mask.any(axis=1)].sum())}/{int(mask.any(axis=1).sum())} converged ({t_per:.1f} s)")
     if not res.converged:
         notes.append(
             f"Levenberg–Marquardt did not reach its tolerance within {res.steps} steps (`fit.trajectory.max_steps`); "
@@ -150,14 +189,22 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     truth = (dataset.truth or {}).get("parameters") if dataset.truth else None
     params_json = {}
     for k in PARAMETER_NAMES:
+        traj_per = per_fit.per_experiment(k) if per_fit is not None and k in per_fit.free else None
+        traj_cons = per_fit.consistency(k) if traj_per is not None else None
         entry = {
             "value": float(getattr(res.params, k)),
             "unit": PARAMETER_UNITS[k],
             "std_error": res.std_error.get(k),
-            "consistency": paper.consistency.get(k),
-            "per_experiment": paper.per_experiment.get(k),
+            # the trajectory method's own consistency where per-experiment fits ran, else the paper's
+            "consistency": _finite_or_none(traj_cons) if traj_per is not None else _finite_or_none(paper.consistency.get(k)),
+            "consistency_method": "trajectory" if traj_per is not None else "paper",
+            "per_experiment": [_finite_or_none(v) for v in (traj_per if traj_per is not None else paper.per_experiment.get(k))],
             "fitted": k in res.free,
-            "paper_method": {"value": paper.estimates.get(k), "consistency": paper.consistency.get(k)},
+            "paper_method": {
+                "value": _finite_or_none(paper.estimates.get(k)),
+                "consistency": _finite_or_none(paper.consistency.get(k)),
+                "per_experiment": [_finite_or_none(v) for v in paper.per_experiment.get(k)],
+            },
         }
         if k in undetermined:
             entry["undetermined"] = undetermined[k]
@@ -178,23 +225,40 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
             "chi2_reduced": res.chi2_reduced,
             "converged": res.converged,
             "lm_steps": res.steps,
+            "lm_stop_reason": res.stop_reason,
             "experiments_in_fit": [files[j] for j in sel_pos],
             "noise_levels": dict(zip(("torque", "motor_velocity", "output_position"), res.sigma.tolist())),
             "correlation": {"parameters": list(res.free), "matrix": res.correlation.tolist()},
         },
         "paper_identification": paper.to_dict(),
         "consistency_note": (
-            "`consistency` is the paper's measure (std/|mean| of per-experiment estimates) from its regressions; "
-            "per-experiment trajectory-error fits are not computed yet."
+            "`consistency` is the paper's measure, std/|mean| of per-experiment estimates. For fitted parameters it "
+            "comes from one trajectory-error LM fit per experiment (`per_experiment`, aligned with "
+            "`fit.per_experiment`; null where the experiment does not inform the parameter or LM did not converge); "
+            "`paper_method` holds the paper's regressions and their consistency."
         ),
+        "per_experiment_fit": None if per_fit is None else {
+            "parameters": list(per_fit.free),
+            "converged": [bool(c) if per_fit.mask[j].any() else None for j, c in enumerate(per_fit.converged)],
+            "lm_steps": [int(x) for x in per_fit.steps],
+            "chi2_reduced": [float(x) for x in per_fit.chi2_reduced],
+        },
         "notes": notes,
         "figures": figs,
-        "timing_s": {"total": total, "paper_identification": t_paper, "trajectory_fit": t_traj, "simulate_all": t_sim},
+        "timing_s": {"total": total, "paper_identification": t_paper, "trajectory_fit": t_traj,
+                     "per_experiment_fits": t_per, "simulate_all": t_sim},
     }
     atomic_write_json(out / "fit.json", result)
     atomic_write_text(out / "report.md", _report(result, truth))
     log(f"wrote {out / 'fit.json'} and {out / 'report.md'} in {total:.1f} s")
     return result
+
+
+def _finite_or_none(v):
+    if v is None:
+        return None
+    v = float(v)
+    return v if np.isfinite(v) else None
 
 
 def _fmt(v):
@@ -209,11 +273,20 @@ def _report(r: dict, truth) -> str:
                  "the joint trajectory-error fit (Levenberg–Marquardt through the diffrax plant, standard errors from "
                  "the Gauss–Newton covariance).")
     lines += ["", "## Table I", ""]
-    head = "| parameter | unit | trajectory fit | std error | paper method | consistency |" + (" truth |" if truth else "")
-    lines += [head, "|" + "---|" * (7 if truth else 6)]
+    lines.append("Consistency is the paper's measure, std/|mean| of the per-experiment estimates (trajectory: one LM fit "
+                 "per experiment; paper: its regressions per experiment).")
+    lines.append("")
+    head = ("| parameter | unit | trajectory fit | std error | consistency (trajectory) | paper method | "
+            "consistency (paper) |" + (" truth |" if truth else ""))
+    lines += [head, "|" + "---|" * (8 if truth else 7)]
+
+    def pct(v):
+        return "—" if v is None else f"{v * 100:.3g} %"
+
     for k, e in r["parameters"].items():
-        row = f"| {k} | {e['unit']} | {_fmt(e['value'])}{'' if e['fitted'] else ' (fixed)'} | {_fmt(e['std_error'])} | " \
-              f"{_fmt(e['paper_method']['value'])} | {_fmt(e['consistency'] * 100 if e['consistency'] is not None else None)} % |"
+        traj_c = e["consistency"] if e.get("consistency_method") == "trajectory" else None
+        row = (f"| {k} | {e['unit']} | {_fmt(e['value'])}{'' if e['fitted'] else ' (fixed)'} | {_fmt(e['std_error'])} | "
+               f"{pct(traj_c)} | {_fmt(e['paper_method']['value'])} | {pct(e['paper_method']['consistency'])} |")
         if truth:
             row += f" {_fmt(e.get('truth'))} |"
         lines.append(row)
