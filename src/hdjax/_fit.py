@@ -198,6 +198,14 @@ LM_CHUNK = 3
 """LM steps per call of the compiled solver; between calls the fit checks its own stopping rule."""
 
 
+def _chunk(max_steps: int) -> int:
+    """LM steps per compiled call: `LM_CHUNK`, or all of `max_steps` when that is under two chunks
+    (a short refinement then runs exactly `max_steps` steps in one call). A run takes whole chunks,
+    so it may take up to `LM_CHUNK − 1` steps more than `max_steps`."""
+    max_steps = max(1, int(max_steps))
+    return max_steps if max_steps < 2 * LM_CHUNK else LM_CHUNK
+
+
 def _stalled(cost_before: float, cost_after: float, cost_rtol: float) -> bool:
     """The stopping rule used on top of optimistix's: a chunk of LM steps lowered ½χ² by less than
     `cost_rtol` of its value (or raised it).
@@ -294,7 +302,7 @@ def fit_parameters(
         return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], r, J
 
     args = (p0, drive, batch, sigma)
-    chunk = max(1, min(int(max_steps), LM_CHUNK))
+    chunk = _chunk(max_steps)
     theta, steps, ok, stop = theta0, 0, False, "max_steps"
     cost = float("inf")
     while True:
@@ -422,7 +430,7 @@ def fit_per_experiment(
         return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
-    chunk = max(1, min(int(max_steps), LM_CHUNK))
+    chunk = _chunk(max_steps)
 
     @eqx.filter_jit
     def run(z, theta0_, p0_, drive_, batch_, sigma_, idx, on):
