@@ -31,6 +31,7 @@ import optimistix as optx
 from ._effects import Effects
 from ._experiment import Experiment
 from ._model import PARAMETER_NAMES, Drive, Parameters
+from ._paper_id import _consistency
 from ._plant import Simulator, simulate
 from ._sharding import experiment_mesh, map_experiments, replicated, shard_experiments
 
@@ -371,12 +372,7 @@ class PerExperimentFit:
 
     def consistency(self, name: str) -> float:
         """The paper's measure, std (ddof 1) / |mean| over the finite per-experiment estimates."""
-        v = self.values[:, self.free.index(name)]
-        v = v[np.isfinite(v)]
-        if v.size < 2:
-            return float("nan")
-        m = float(np.mean(v))
-        return float(np.std(v, ddof=1) / abs(m)) if m != 0 else float("inf")
+        return _consistency(self.values[:, self.free.index(name)])
 
 
 def fit_per_experiment(
@@ -465,9 +461,8 @@ def fit_per_experiment(
                 done[e] = True
         cost = cost_new
     values = np.full(mask.shape, np.nan)
-    th0 = np.asarray(theta0)
     for e in np.flatnonzero(active & ok):
-        p = pmap.to_params(jnp.asarray(np.asarray(full_theta(jnp.asarray(z_final[e]), jnp.asarray(th0), idx[e], on[e]))), p0)
+        p = pmap.to_params(full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
         for k, name in enumerate(pmap.free):
             if mask[e, k]:
                 values[e, k] = float(getattr(p, name))

@@ -134,25 +134,27 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     # viscous/Coulomb terms of the directions it covers; slow free motion: Stribeck), the rest fixed
     # at the joint estimate
     per_fit, t_per = None, 0.0
+    full = stack_experiments(exps)
     if opts["trajectory"]["per_experiment"]:
         mask = np.array([[np.isfinite(paper.per_experiment[k][j]) for k in res.free] for j in range(len(exps))], dtype=bool)
-        if mask.any():
-            log(f"[2b/4] per-experiment trajectory-error fits ({int(mask.any(axis=1).sum())} experiments, vmap)")
+        informed = mask.any(axis=1)
+        if informed.any():
+            log(f"[2b/4] per-experiment trajectory-error fits ({int(informed.sum())} experiments, vmap)")
             t0 = time.time()
             per_fit = fit_per_experiment(
-                res.params, drive, stack_experiments(exps), mask, free=res.free, simulator=sim_fit, sigma=res.sigma,
+                res.params, drive, full, mask, free=res.free, simulator=sim_fit, sigma=res.sigma,
                 max_steps=int(opts["trajectory"]["per_experiment_max_steps"]),
                 cost_rtol=cost_rtol,
             )
             t_per = time.time() - t0
-            bad = [files[j] for j in range(len(exps)) if mask[j].any() and not per_fit.converged[j]]
+            bad = [files[j] for j in range(len(exps)) if informed[j] and not per_fit.converged[j]]
             if bad:
                 notes.append(
                     f"per-experiment trajectory fit: Levenberg–Marquardt did not converge within "
                     f"{opts['trajectory']['per_experiment_max_steps']} steps for {', '.join(bad)} "
                     "(`fit.trajectory.per_experiment_max_steps`); these are left out of the consistency measure."
                 )
-            log(f"      {int(per_fit.converged[mask.any(axis=1)].sum())}/{int(mask.any(axis=1).sum())} converged ({t_per:.1f} s)")
+            log(f"      {int(per_fit.converged[informed].sum())}/{int(informed.sum())} converged ({t_per:.1f} s)")
     if not res.converged:
         notes.append(
             f"Levenberg–Marquardt did not reach its tolerance within {res.steps} steps (`fit.trajectory.max_steps`); "
@@ -165,7 +167,6 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
 
     log(f"[3/4] simulating all {len(exps)} experiments with the fitted parameters")
     t0 = time.time()
-    full = stack_experiments(exps)
     traj = jax.jit(simulate_batch)(res.params, drive, full)  # arrays passed as arguments, not constants
     t_sim = time.time() - t0
     m = np.asarray(full.mask)
