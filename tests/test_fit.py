@@ -4,12 +4,15 @@ workflow writes the SPEC §3 keys."""
 import json
 
 import numpy as np
+import optimistix as optx
+import jax
+import jax.numpy as jnp
 import pytest
 from helpers import hd2
 
 import hdjax
 from hdjax._data import load_dataset, write_dataset
-from hdjax._fit import _chunk, _stalled, fit_parameters, fit_per_experiment
+from hdjax._fit import StallStop, _final_residual_and_jacobian, _stalled, fit_parameters, fit_per_experiment
 from hdjax._identify import run_fit
 from hdjax._paper_id import identify_paper
 
@@ -59,7 +62,7 @@ def test_trajectory_fit_recovers_truth(campaign, joint):
         rel = abs(float(getattr(res.params, k)) / float(getattr(p, k)) - 1)
         assert rel < 0.25, (k, rel)  # issue: Stribeck amplitudes within 25 %
     assert all(np.isfinite(v) and v > 0 for v in res.std_error.values())
-    assert res.converged and res.stop_reason in ("tolerance", "cost_stalled") and res.steps <= 15 + 2
+    assert res.converged and res.stop_reason in ("tolerance", "cost_stalled") and res.steps <= 15
 
 
 def test_fit_workflow_writes_spec_keys(campaign, tmp_path):
@@ -109,4 +112,26 @@ def test_stall_rule():
     assert _stalled(100.0, 100.0, 1e-5) and _stalled(100.0, 100.5, 1e-5)
     assert not _stalled(100.0, 99.0, 1e-5) and not _stalled(float("inf"), 1e9, 1e-5)
     assert _stalled(1e5, 1e5 * (1 - 1e-6), 1e-5)
-    assert _chunk(5) == 5 and _chunk(20) == 3 and _chunk(0) == 1
+
+
+def test_stall_stop_ends_a_jittery_fit():
+    """A least-squares problem whose residuals jitter at 1e-4 (as an adaptive ODE solve's do):
+    optimistix's own per-residual test is met only after LM has shrunk its steps to nothing,
+    `StallStop` ends it at the optimum within three steps of reaching it, and the
+    residual/Jacobian it hands back are those at the returned point."""
+    A = jnp.array([[1.0, 0.2], [0.3, 2.0], [1.0, 1.0], [0.5, -1.0]])
+    b = jnp.array([1.0, 2.0, 3.0, 4.0])
+
+    def fn(y, _):
+        return A @ y - b + 1e-4 * jax.lax.stop_gradient(jnp.sin(1e7 * y).sum())  # jitter, not differentiated
+
+    lm = optx.LevenbergMarquardt(rtol=1e-9, atol=1e-9)
+    plain = optx.least_squares(fn, lm, jnp.zeros(2), max_steps=40, throw=False)
+    assert int(plain.stats["num_steps"]) > 20
+    sol = optx.least_squares(fn, StallStop(lm, cost_rtol=1e-5), jnp.zeros(2), max_steps=40, throw=False)
+    assert sol.result == optx.RESULTS.successful and bool(sol.state.stalled)
+    assert int(sol.stats["num_steps"]) <= 12
+    exact = jnp.linalg.lstsq(A, b)[0]
+    assert jnp.allclose(sol.value, exact, atol=1e-3)
+    r, J = _final_residual_and_jacobian(sol)
+    assert jnp.allclose(r, fn(sol.value, None)) and jnp.allclose(J, A, atol=1e-2)

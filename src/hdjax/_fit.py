@@ -26,6 +26,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import lineax as lx
 import optimistix as optx
 
 from ._effects import Effects
@@ -170,8 +171,8 @@ class TrajectoryFit:
     - `steps`: LM iterations.
     - `sigma`: channel noise levels used as weights.
     - `jacobian_singular_values`: of the weighted Jacobian in the unconstrained space.
-    - `stop_reason`: "tolerance" (optimistix's test), "cost_stalled" (a chunk of LM steps lowered
-      ½χ² by less than `cost_rtol`) or "max_steps".
+    - `stop_reason`: "tolerance" (optimistix's test), "cost_stalled" (`STALL_WINDOW` LM steps
+      lowered ½χ² by less than `cost_rtol`, `StallStop`) or "max_steps".
     """
 
     params: Parameters
@@ -195,28 +196,83 @@ def _covariance(J: np.ndarray, chi2: float):
     return cov
 
 
-LM_CHUNK = 3
-"""LM steps per call of the compiled solver; between calls the fit checks its own stopping rule."""
+STALL_WINDOW = 3
+"""LM steps between two checks of the cost-stall rule (`_stalled`)."""
 
 
-def _chunk(max_steps: int) -> int:
-    """LM steps per compiled call: `LM_CHUNK`, or all of `max_steps` when that is under two chunks
-    (a short refinement then runs exactly `max_steps` steps in one call). A run takes whole chunks,
-    so it may take up to `LM_CHUNK − 1` steps more than `max_steps`."""
-    max_steps = max(1, int(max_steps))
-    return max_steps if max_steps < 2 * LM_CHUNK else LM_CHUNK
-
-
-def _stalled(cost_before: float, cost_after: float, cost_rtol: float) -> bool:
-    """The stopping rule used on top of optimistix's: a chunk of LM steps lowered ½χ² by less than
-    `cost_rtol` of its value (or raised it).
+def _stalled(cost_before, cost_after, cost_rtol):
+    """The stopping rule used on top of optimistix's: `STALL_WINDOW` LM steps lowered ½χ² by less
+    than `cost_rtol` of its value (or raised it). Works on floats and on JAX scalars.
 
     optimistix stops when the parameter change *and the change of every residual* fall below its
     tolerances (max norm). The residual of an adaptive ODE solve jitters under parameter changes at
     about its relative tolerance (½χ² moves by ~1 in 10⁵ at rtol 1e-5, measured on HD2), so that test
     is never met once the poorly determined Stribeck amplitudes wander inside their standard error;
     the fit then ran to its step cap with the cost flat to 5 digits after 6 steps."""
-    return not (cost_after < cost_before * (1.0 - cost_rtol))
+    return jnp.logical_not(cost_after < cost_before * (1.0 - cost_rtol))
+
+
+class _StallState(eqx.Module):
+    inner: object
+    checkpoint: jax.Array  # ½χ² at the last check (inf before the first)
+    stalled: jax.Array
+
+
+class StallStop(optx.AbstractLeastSquaresSolver):
+    """A Gauss–Newton-type optimistix solver (e.g. `LevenbergMarquardt`) with one more stopping rule:
+    every `window` steps, stop when the accepted ½χ² fell by less than `cost_rtol` of its value
+    since the previous check (`_stalled`). Everything else is the inner solver's; the whole fit
+    stays one compiled optimistix loop, one residual-and-Jacobian evaluation per LM step.
+
+    `state.stalled` says which rule stopped it; `state.inner.f_info` holds the residual and the
+    Jacobian at the returned point (no re-evaluation needed for the covariance)."""
+
+    inner: optx.AbstractLeastSquaresSolver
+    cost_rtol: float = 1e-5
+    window: int = STALL_WINDOW
+
+    @property
+    def rtol(self):
+        return self.inner.rtol
+
+    @property
+    def atol(self):
+        return self.inner.atol
+
+    @property
+    def norm(self):
+        return self.inner.norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return _StallState(inner, jnp.array(jnp.inf), jnp.array(False))
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
+        cost = 0.5 * jnp.sum(inner.f_info.residual**2)
+        check = (inner.num_steps % self.window) == 0
+        stalled = check & _stalled(state.checkpoint, cost, self.cost_rtol)
+        checkpoint = jnp.where(check, cost, state.checkpoint)
+        return y, _StallState(inner, checkpoint, stalled), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        terminate, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
+        return terminate | state.stalled, result
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
+
+
+def _stop_reason(result, stalled) -> np.ndarray:
+    """Per fit: "tolerance" (optimistix's test), "cost_stalled" (`StallStop`) or "max_steps"."""
+    ok = np.asarray(result == optx.RESULTS.successful)
+    return np.where(ok & np.asarray(stalled), "cost_stalled", np.where(ok, "tolerance", "max_steps"))
+
+
+def _final_residual_and_jacobian(sol):
+    """Residual and (materialised) Jacobian at `sol.value`, from the LM state (already computed there)."""
+    info = sol.state.inner.f_info
+    return info.residual, lx.materialise(info.jac).as_matrix()
 
 
 def _lm_objective(residuals):
@@ -264,7 +320,7 @@ def fit_parameters(
     - `free`: names of the parameters to fit; the others stay at `p0`.
 
     **Other arguments:** `simulator` (ODE numerics), `solver` (optimistix LM), `max_steps` (LM
-    steps in all), `cost_rtol` (also stop when `LM_CHUNK` steps lower ½χ² by less than this fraction,
+    steps in all), `cost_rtol` (also stop when `STALL_WINDOW` steps lower ½χ² by less than this fraction,
     see `_stalled`), `sigma` (channel noise levels; estimated from the data by `noise_levels` when
     None).
 
@@ -290,36 +346,20 @@ def fit_parameters(
         return r.reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
+    lm = StallStop(solver, cost_rtol=cost_rtol)
 
-    # one JIT for the whole fit, called once per chunk of LM steps; data enter as arguments (never
-    # as closed-over constants, which XLA would try to constant-fold)
+    # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which XLA
+    # would try to constant-fold)
     @eqx.filter_jit
     def run(theta0, args):
-        sol = optx.least_squares(residuals_lm, solver, theta0, args, max_steps=chunk, throw=False)
-        r = residuals(sol.value, args)
-        J = jax.jacfwd(residuals)(sol.value, args)
+        sol = optx.least_squares(residuals_lm, lm, theta0, args, max_steps=max_steps, throw=False)
+        r, J = _final_residual_and_jacobian(sol)
         if mesh is not None:  # every process can read the result (multi-host)
             r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
-        return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], r, J
+        return sol.value, sol.result, sol.state.stalled, sol.stats["num_steps"], r, J
 
-    args = (p0, drive, batch, sigma)
-    chunk = _chunk(max_steps)
-    theta, steps, ok, stop = theta0, 0, False, "max_steps"
-    cost = float("inf")
-    while True:
-        # LM accepts only steps that lower the cost, so each chunk ends at or below its start
-        theta, ok_, n, r, J = run(theta, args)
-        steps += int(n)
-        cost_new = float(0.5 * np.sum(np.asarray(r) ** 2))
-        if bool(ok_):
-            ok, stop = True, "tolerance"
-            break
-        if _stalled(cost, cost_new, cost_rtol):
-            ok, stop = True, "cost_stalled"
-            break
-        cost = cost_new
-        if steps >= max_steps:
-            break
+    theta, result, stalled, steps, r, J = run(theta0, (p0, drive, batch, sigma))
+    stop = str(_stop_reason(result, stalled))
     theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
     n_obs = int(np.sum(r != 0.0))
     chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))
@@ -337,7 +377,7 @@ def fit_parameters(
         std_error={k: float(v) for k, v in zip(free, se)},
         correlation=corr,
         chi2_reduced=chi2,
-        converged=bool(ok),
+        converged=stop != "max_steps",
         steps=int(steps),
         stop_reason=stop,
         sigma=np.asarray(sigma),
@@ -354,7 +394,7 @@ class PerExperimentFit:
     - `free`: names of the parameters (columns of `values` and `mask`).
     - `mask`: (experiments, parameters) bool; True where the parameter was fitted on that experiment.
     - `values`: (experiments, parameters) estimates (SI), NaN where not fitted or not converged.
-    - `converged`: per experiment, LM reached its tolerance within `max_steps`.
+    - `converged`: per experiment, LM reached its tolerance or stalled (`StallStop`) within `max_steps`.
     - `steps`: LM iterations per experiment.
     - `chi2_reduced`: per experiment, residual sum of squares / (n − p).
     """
@@ -426,40 +466,23 @@ def fit_per_experiment(
         return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
-    chunk = _chunk(max_steps)
+    lm = StallStop(solver, cost_rtol=cost_rtol)
 
     @eqx.filter_jit
     def run(z, theta0_, p0_, drive_, batch_, sigma_, idx, on):
         def one(z_e, exp, idx_e, on_e):
             args = (theta0_, p0_, drive_, exp, sigma_, idx_e, on_e)
-            sol = optx.least_squares(residuals_lm, solver, z_e, args, max_steps=chunk, throw=False)
-            r = residuals(sol.value, args)
-            return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], r
+            sol = optx.least_squares(residuals_lm, lm, z_e, args, max_steps=max_steps, throw=False)
+            return sol.value, sol.result, sol.state.stalled, sol.stats["num_steps"], sol.state.inner.f_info.residual
 
         return jax.vmap(one)(z, batch_, idx, on)
 
-    z = jnp.zeros((n_exp, n_slots))
-    idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
     active = mask.any(axis=1)
-    done = ~active
-    ok = np.zeros(n_exp, dtype=bool)
-    steps = np.zeros(n_exp, dtype=int)
-    cost = np.full(n_exp, np.inf)
-    rss = np.zeros(n_exp)
-    n_obs = np.zeros(n_exp)
-    z_final = np.zeros((n_exp, n_slots))
-    while not done.all():
-        z, conv, n, r = run(z, theta0, p0, drive, batch, sigma, idx, on)
-        r = np.asarray(r)
-        cost_new = 0.5 * np.sum(r**2, axis=1)
-        for e in np.flatnonzero(~done):
-            steps[e] += int(n[e])
-            z_final[e], rss[e], n_obs[e] = np.asarray(z[e]), 2.0 * cost_new[e], np.sum(r[e] != 0.0)
-            if bool(conv[e]) or _stalled(cost[e], cost_new[e], cost_rtol):
-                done[e], ok[e] = True, True
-            elif steps[e] >= max_steps:
-                done[e] = True
-        cost = cost_new
+    idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
+    z_final, result, stalled, steps, r = run(jnp.zeros((n_exp, n_slots)), theta0, p0, drive, batch, sigma, idx, on)
+    z_final, r, steps = np.asarray(z_final), np.asarray(r), np.asarray(steps)
+    ok = (_stop_reason(result, stalled) != "max_steps") & active
+    rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
     values = np.full(mask.shape, np.nan)
     for e in np.flatnonzero(active & ok):
         p = pmap.to_params(full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
