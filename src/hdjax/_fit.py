@@ -34,7 +34,7 @@ from ._experiment import Experiment
 from ._model import PARAMETER_NAMES, Drive, Parameters
 from ._paper_id import _consistency
 from ._plant import Simulator, simulate
-from ._sharding import experiment_mesh, map_experiments, replicated, shard_experiments
+from ._sharding import experiment_mesh, for_each_experiment, map_experiments, replicated, shard_experiments
 
 
 CHANNELS = ("torque", "motor_velocity", "output_position")
@@ -167,12 +167,13 @@ class TrajectoryFit:
     - `correlation`: correlation matrix of the fitted parameters (order of `free`).
     - `chi2_reduced`: residual sum of squares / (n − p); ≈1 when the model explains the data
       to the noise level.
-    - `converged`: LM reached its tolerance, or stalled (see `stop_reason`), within `max_steps`.
+    - `converged`: LM stopped by one of its rules (see `stop_reason`) within `max_steps`.
     - `steps`: LM iterations.
     - `sigma`: channel noise levels used as weights.
     - `jacobian_singular_values`: of the weighted Jacobian in the unconstrained space.
-    - `stop_reason`: "tolerance" (optimistix's test), "cost_stalled" (`STALL_WINDOW` LM steps
-      lowered ½χ² by less than `cost_rtol`, `StallStop`) or "max_steps".
+    - `stop_reason`: "tolerance" (optimistix's test), "gauss_newton_step_small" (the remaining
+      Gauss–Newton step is under `step_se_tol` standard errors), "cost_stalled" (`STALL_WINDOW` LM
+      steps lowered ½χ² by less than `cost_rtol`), see `CostStop`; or "max_steps".
     """
 
     params: Parameters
@@ -212,22 +213,42 @@ def _stalled(cost_before, cost_after, cost_rtol):
     return jnp.logical_not(cost_after < cost_before * (1.0 - cost_rtol))
 
 
-class _StallState(eqx.Module):
+def _gauss_newton_step_in_se(residual, jacobian):
+    """Length of the full Gauss–Newton step from here, in standard errors (Mahalanobis):
+    m² = δᵀJᵀJδ / s², δ = argmin ‖J δ + r‖ (minimum norm, so a rank-deficient J is fine),
+    s² = ‖r‖²/(n − p) the reduced χ² over the non-zero residuals. Built from the Jacobian, not from
+    a difference of two residuals, so it does not see the ODE solver's jitter."""
+    delta = jnp.linalg.lstsq(jacobian, -residual)[0]
+    n = jnp.sum(residual != 0.0)
+    s2 = jnp.sum(residual**2) / jnp.maximum(n - jacobian.shape[1], 1)
+    return jnp.sqrt(jnp.sum((jacobian @ delta) ** 2) / jnp.maximum(s2, 1e-300))
+
+
+class _StopState(eqx.Module):
     inner: object
-    checkpoint: jax.Array  # ½χ² at the last check (inf before the first)
-    stalled: jax.Array
+    checkpoint: jax.Array  # ½χ² at the last stall check (inf before the first)
+    reason: jax.Array  # index into STOP_REASONS (0: none of CostStop's rules)
 
 
-class StallStop(optx.AbstractLeastSquaresSolver):
-    """A Gauss–Newton-type optimistix solver (e.g. `LevenbergMarquardt`) with one more stopping rule:
-    every `window` steps, stop when the accepted ½χ² fell by less than `cost_rtol` of its value
-    since the previous check (`_stalled`). Everything else is the inner solver's; the whole fit
-    stays one compiled optimistix loop, one residual-and-Jacobian evaluation per LM step.
+STOP_REASONS = ("tolerance", "gauss_newton_step_small", "cost_stalled")
 
-    `state.stalled` says which rule stopped it; `state.inner.f_info` holds the residual and the
-    Jacobian at the returned point (no re-evaluation needed for the covariance)."""
+
+class CostStop(optx.AbstractLeastSquaresSolver):
+    """A Gauss–Newton-type optimistix solver (e.g. `LevenbergMarquardt`) with two more stopping
+    rules, checked at every accepted point:
+
+    - *Gauss–Newton step small*: the full Gauss–Newton step from the accepted point is shorter
+      than `step_se_tol` standard errors (`_gauss_newton_step_in_se`): what is left to gain is far
+      inside the estimate's own uncertainty;
+    - *cost stalled*: the last `window` steps lowered ½χ² by less than `cost_rtol` (`_stalled`),
+      a safeguard when the Jacobian is poor.
+
+    Everything else is the inner solver's; the fit stays one compiled optimistix loop with one
+    residual-and-Jacobian evaluation per LM step. `state.reason` says which rule stopped it
+    (`STOP_REASONS`); `state.inner.f_info` holds the residual and Jacobian at the returned point."""
 
     inner: optx.AbstractLeastSquaresSolver
+    step_se_tol: float = 0.1
     cost_rtol: float = 1e-5
     window: int = STALL_WINDOW
 
@@ -245,28 +266,31 @@ class StallStop(optx.AbstractLeastSquaresSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
-        return _StallState(inner, jnp.array(jnp.inf), jnp.array(False))
+        return _StopState(inner, jnp.array(jnp.inf), jnp.array(0))
 
     def step(self, fn, y, args, options, state, tags):
         y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
-        cost = 0.5 * jnp.sum(inner.f_info.residual**2)
+        r = inner.f_info.residual
+        cost = 0.5 * jnp.sum(r**2)
+        m = _gauss_newton_step_in_se(r, lx.materialise(inner.f_info.jac).as_matrix())
         check = (inner.num_steps % self.window) == 0
         stalled = check & _stalled(state.checkpoint, cost, self.cost_rtol)
         checkpoint = jnp.where(check, cost, state.checkpoint)
-        return y, _StallState(inner, checkpoint, stalled), aux
+        reason = jnp.where(m < self.step_se_tol, 1, jnp.where(stalled, 2, 0))
+        return y, _StopState(inner, checkpoint, reason), aux
 
     def terminate(self, fn, y, args, options, state, tags):
         terminate, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
-        return terminate | state.stalled, result
+        return terminate | (state.reason > 0), result
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
 
 
-def _stop_reason(result, stalled) -> np.ndarray:
-    """Per fit: "tolerance" (optimistix's test), "cost_stalled" (`StallStop`) or "max_steps"."""
+def _stop_reason(result, reason) -> np.ndarray:
+    """Per fit: one of `STOP_REASONS` or "max_steps"."""
     ok = np.asarray(result == optx.RESULTS.successful)
-    return np.where(ok & np.asarray(stalled), "cost_stalled", np.where(ok, "tolerance", "max_steps"))
+    return np.where(ok, np.asarray(STOP_REASONS)[np.asarray(reason)], "max_steps")
 
 
 def _final_residual_and_jacobian(sol):
@@ -307,6 +331,7 @@ def fit_parameters(
     simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8),
     solver=optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6),
     max_steps: int = 40,
+    step_se_tol: float = 0.1,
     cost_rtol: float = 1e-5,
     sigma=None,
 ) -> TrajectoryFit:
@@ -320,8 +345,9 @@ def fit_parameters(
     - `free`: names of the parameters to fit; the others stay at `p0`.
 
     **Other arguments:** `simulator` (ODE numerics), `solver` (optimistix LM), `max_steps` (LM
-    steps in all), `cost_rtol` (also stop when `STALL_WINDOW` steps lower ½χ² by less than this fraction,
-    see `_stalled`), `sigma` (channel noise levels; estimated from the data by `noise_levels` when
+    steps in all), `step_se_tol` (also stop when the Gauss–Newton step left is shorter than this
+    many standard errors), `cost_rtol` (also stop when `STALL_WINDOW` steps lower ½χ² by less than
+    this fraction), see `CostStop`; `sigma` (channel noise levels; estimated from the data by `noise_levels` when
     None).
 
     **Returns:** a `TrajectoryFit`.
@@ -340,13 +366,13 @@ def fit_parameters(
 
         def per_experiment(shared, b):
             p_, d_, s_ = shared
-            return jax.vmap(lambda e: experiment_residuals(p_, d_, e, s_, simulator))(b)
+            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator), b)
 
         r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
         return r.reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
-    lm = StallStop(solver, cost_rtol=cost_rtol)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)
 
     # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which XLA
     # would try to constant-fold)
@@ -356,10 +382,10 @@ def fit_parameters(
         r, J = _final_residual_and_jacobian(sol)
         if mesh is not None:  # every process can read the result (multi-host)
             r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
-        return sol.value, sol.result, sol.state.stalled, sol.stats["num_steps"], r, J
+        return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], r, J
 
-    theta, result, stalled, steps, r, J = run(theta0, (p0, drive, batch, sigma))
-    stop = str(_stop_reason(result, stalled))
+    theta, result, reason, steps, r, J = run(theta0, (p0, drive, batch, sigma))
+    stop = str(_stop_reason(result, reason))
     theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
     n_obs = int(np.sum(r != 0.0))
     chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))
@@ -394,7 +420,7 @@ class PerExperimentFit:
     - `free`: names of the parameters (columns of `values` and `mask`).
     - `mask`: (experiments, parameters) bool; True where the parameter was fitted on that experiment.
     - `values`: (experiments, parameters) estimates (SI), NaN where not fitted or not converged.
-    - `converged`: per experiment, LM reached its tolerance or stalled (`StallStop`) within `max_steps`.
+    - `converged`: per experiment, LM stopped by one of its rules (`CostStop`) within `max_steps`.
     - `steps`: LM iterations per experiment.
     - `chi2_reduced`: per experiment, residual sum of squares / (n − p).
     """
@@ -425,6 +451,7 @@ def fit_per_experiment(
     simulator: Simulator = Simulator(rtol=1e-5, atol=1e-7),
     solver=optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6),
     max_steps: int = 12,
+    step_se_tol: float = 0.1,
     cost_rtol: float = 1e-5,
     sigma=None,
 ) -> PerExperimentFit:
@@ -466,22 +493,22 @@ def fit_per_experiment(
         return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
-    lm = StallStop(solver, cost_rtol=cost_rtol)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)
 
     @eqx.filter_jit
     def run(z, theta0_, p0_, drive_, batch_, sigma_, idx, on):
         def one(z_e, exp, idx_e, on_e):
             args = (theta0_, p0_, drive_, exp, sigma_, idx_e, on_e)
             sol = optx.least_squares(residuals_lm, lm, z_e, args, max_steps=max_steps, throw=False)
-            return sol.value, sol.result, sol.state.stalled, sol.stats["num_steps"], sol.state.inner.f_info.residual
+            return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
 
-        return jax.vmap(one)(z, batch_, idx, on)
+        return for_each_experiment(one, z, batch_, idx, on)
 
     active = mask.any(axis=1)
     idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
-    z_final, result, stalled, steps, r = run(jnp.zeros((n_exp, n_slots)), theta0, p0, drive, batch, sigma, idx, on)
+    z_final, result, reason, steps, r = run(jnp.zeros((n_exp, n_slots)), theta0, p0, drive, batch, sigma, idx, on)
     z_final, r, steps = np.asarray(z_final), np.asarray(r), np.asarray(steps)
-    ok = (_stop_reason(result, stalled) != "max_steps") & active
+    ok = (_stop_reason(result, reason) != "max_steps") & active
     rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
     values = np.full(mask.shape, np.nan)
     for e in np.flatnonzero(active & ok):

@@ -35,6 +35,7 @@ DEFAULTS = {
         "max_steps": 20,
         "rtol": 1e-5,
         "cost_rtol": 1e-5,
+        "step_se_tol": 0.1,
         "per_experiment": True,
         "per_experiment_max_steps": 12,
     },
@@ -122,9 +123,10 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     sim_fit = Simulator(rtol=float(opts["trajectory"]["rtol"]), atol=float(opts["trajectory"]["rtol"]) * 1e-2)
     t0 = time.time()
     cost_rtol = float(opts["trajectory"]["cost_rtol"])
+    step_se_tol = float(opts["trajectory"]["step_se_tol"])
     res = fit_parameters(
         p0, drive, batch, free=free_names, simulator=sim_fit, max_steps=int(opts["trajectory"]["max_steps"]),
-        cost_rtol=cost_rtol,
+        cost_rtol=cost_rtol, step_se_tol=step_se_tol,
     )
     t_traj = time.time() - t0
     log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({t_traj:.1f} s)")
@@ -144,7 +146,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
             per_fit = fit_per_experiment(
                 res.params, drive, full, mask, free=res.free, simulator=sim_fit, sigma=res.sigma,
                 max_steps=int(opts["trajectory"]["per_experiment_max_steps"]),
-                cost_rtol=cost_rtol,
+                cost_rtol=cost_rtol, step_se_tol=step_se_tol,
             )
             t_per = time.time() - t0
             bad = [files[j] for j in range(len(exps)) if informed[j] and not per_fit.converged[j]]

@@ -30,7 +30,7 @@ from ._experiment import Experiment
 from ._solver import Rodas3
 from ._effects import Effects, dahl_rate, stiffness_torque
 from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_basis
-from ._sharding import experiment_mesh, is_concrete, map_experiments, shard_experiments
+from ._sharding import experiment_mesh, for_each_experiment, is_concrete, map_experiments, shard_experiments
 from ._smooth import smooth_signed_power
 
 
@@ -272,14 +272,14 @@ def simulate_batch(
         sharded, n = shard_experiments(batch)
         out = _simulate_sharded(p, drive, sharded, effects, simulator, experiment_mesh())
         return jax.tree.map(lambda x: x[:n], out)
-    return jax.vmap(lambda e: simulate(p, drive, e, effects=effects, simulator=simulator))(batch)
+    return for_each_experiment(lambda e: simulate(p, drive, e, effects=effects, simulator=simulator), batch)
 
 
 @eqx.filter_jit
 def _simulate_sharded(p, drive, batch, effects, simulator, mesh):
     def per_experiment(shared, b):
         p_, d_, eff = shared
-        return jax.vmap(lambda e: simulate(p_, d_, e, effects=eff, simulator=simulator))(b)
+        return for_each_experiment(lambda e: simulate(p_, d_, e, effects=eff, simulator=simulator), b)
 
     return map_experiments(per_experiment, mesh)((p, drive, effects), batch)
 

@@ -34,6 +34,8 @@ the whole dataset (a campaign is a few MB); `shard_experiments` builds the globa
 can read the result. (Tested here on one host with several CPU devices only.)
 """
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -121,3 +123,29 @@ def map_experiments(fn, mesh: Mesh | None):
         out_specs=PartitionSpec(AXIS),
         check_vma=False,  # equinox's error branches (eqx.error_if) carry no varying-axis types
     )
+
+
+def experiment_batching() -> str:
+    """How a device runs its experiments: `"vmap"` (all at once, in lock-step) or `"map"` (one
+    after the other, `jax.lax.map`).
+
+    Default: `"map"` on the CPU, `"vmap"` on accelerators; override with the environment variable
+    `HDJAX_EXPERIMENT_BATCHING=vmap|map`. Why (measured, `benchmarks/RESULTS.md`): an adaptive ODE
+    solve under `vmap` runs every lane for as many steps as its slowest lane (and a vmapped
+    Levenberg–Marquardt loop for as many iterations as its slowest fit), and on a CPU a batched
+    step costs as much per lane as a single one — so on the CPU `vmap` pays the slowest
+    experiment's cost for every experiment. On a GPU the lanes run in parallel and `vmap` wins."""
+    how = os.environ.get("HDJAX_EXPERIMENT_BATCHING", "").strip().lower()
+    if how in ("vmap", "map"):
+        return how
+    if how:
+        raise ValueError(f"HDJAX_EXPERIMENT_BATCHING={how!r}: use 'vmap' or 'map' (or leave it unset).")
+    return "map" if jax.default_backend() == "cpu" else "vmap"
+
+
+def for_each_experiment(fn, *batched):
+    """`fn(*slices)` for every index of the leading (experiment) axis of `batched`, stacked; run by
+    `vmap` or `jax.lax.map` as `experiment_batching()` says (same results either way)."""
+    if experiment_batching() == "vmap":
+        return jax.vmap(fn)(*batched)
+    return jax.lax.map(lambda xs: fn(*xs), batched)
