@@ -54,6 +54,7 @@ from ._experiment import Experiment, stack_experiments
 from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map
 from ._model import Drive, Parameters
 from ._plant import Simulator, simulate
+from ._sharding import for_each_experiment
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,15 +171,15 @@ class _Problem(eqx.Module):
 
     @eqx.filter_jit
     def simulate(self, zs, p_ref, batch, sigma):
-        return jax.vmap(self._one, in_axes=(0, None, 0, 0))(zs, p_ref, batch, sigma)
+        return for_each_experiment(lambda z, e, s: self._one(z, p_ref, e, s), zs, batch, sigma)
 
     @eqx.filter_jit
     def trajectories(self, zs, p_ref, batch):
-        return jax.vmap(self._traj, in_axes=(0, None, 0))(zs, p_ref, batch)
+        return for_each_experiment(lambda z, e: self._traj(z, p_ref, e), zs, batch)
 
     @eqx.filter_jit
     def jacobian(self, z, tangents, p_ref, batch, sigma):
-        f = lambda z_: jax.vmap(self._one, in_axes=(None, None, 0, 0))(z_, p_ref, batch, sigma)
+        f = lambda z_: for_each_experiment(lambda e, s: self._one(z_, p_ref, e, s), batch, sigma)
         r, J = jax.vmap(lambda v: jax.jvp(f, (z,), (v,)), out_axes=(None, -1))(tangents)
         return r, J
 
