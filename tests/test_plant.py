@@ -8,6 +8,7 @@ from helpers import hd1, hd2, sine_experiment
 from scipy.integrate import solve_ivp
 
 import hdjax
+import hdjax._sharding
 
 
 def _reference(p, drive, exp, smoothing=hdjax.Smoothing()):
@@ -73,6 +74,26 @@ def test_batch_with_padding_matches_single_runs():
         # same solver tolerance (rtol 1e-7) in both; vmapped arithmetic may round differently and so
         # pick slightly different adaptive steps, hence agreement to the solver tolerance, not to 1e-15
         np.testing.assert_allclose(np.asarray(trajs.torque[k, :n]), ref, rtol=0, atol=1e-6 * np.max(np.abs(ref)))
+
+
+@pytest.mark.parametrize("how", ["vmap", "map"])
+def test_both_batchings_give_the_single_runs(how, monkeypatch):
+    """`vmap` (accelerators) and `lax.map` (CPU default) over experiments: same trajectories."""
+    monkeypatch.setenv("HDJAX_EXPERIMENT_BATCHING", how)
+    assert hdjax._sharding.experiment_batching() == how
+    p, drive = hd2()
+    exps = [sine_experiment("constrained", duration=0.2), sine_experiment("free", freq=5.0, duration=0.15)]
+    trajs = jax.jit(lambda p_, b: hdjax.simulate_batch(p_, drive, b))(p, hdjax.stack_experiments(exps))
+    for k, e in enumerate(exps):
+        ref = np.asarray(jax.jit(hdjax.simulate)(p, drive, e).torque)
+        n = e.time.shape[0]
+        np.testing.assert_allclose(np.asarray(trajs.torque[k, :n]), ref, rtol=0, atol=1e-6 * np.max(np.abs(ref)))
+
+
+def test_bad_batching_setting_is_named(monkeypatch):
+    monkeypatch.setenv("HDJAX_EXPERIMENT_BATCHING", "pmap")
+    with pytest.raises(ValueError, match="HDJAX_EXPERIMENT_BATCHING"):
+        hdjax._sharding.experiment_batching()
 
 
 def test_jacfwd_matches_central_differences_for_all_parameters():
