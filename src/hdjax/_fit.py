@@ -185,7 +185,7 @@ class TrajectoryFit:
     steps: int
     sigma: np.ndarray
     jacobian_singular_values: np.ndarray
-    stop_reason: str = "tolerance"
+    stop_reason: str
 
 
 def _covariance(J: np.ndarray, chi2: float):
@@ -455,14 +455,15 @@ def fit_per_experiment(
     cost_rtol: float = 1e-5,
     sigma=None,
 ) -> PerExperimentFit:
-    """One trajectory-error LM fit per experiment, all at once with `vmap` (one JIT).
+    """One trajectory-error LM fit per experiment, all in one JIT (`for_each_experiment`: `lax.map`
+    on the CPU, `vmap` on accelerators).
 
     Experiment `e` fits the parameters `free[k]` with `mask[e, k]` True and keeps the others at
     `p0` (for example the joint fit's estimate), so each experiment estimates only what it can
     determine (locked: compliance; fast free motion: inertia, viscous and Coulomb; slow free
     motion: Stribeck). The spread of the estimates is the trajectory method's consistency measure.
     Each experiment carries only as many unknowns as the largest row of `mask` (forward-mode
-    tangents cost in proportion), and stops on its own by the rule of `fit_parameters`.
+    tangents cost in proportion), and stops on its own by `CostStop`'s rules.
 
     **Arguments:** as `fit_parameters`, plus `mask`: (experiments, len(free)) bool.
 
@@ -511,7 +512,7 @@ def fit_per_experiment(
     ok = (_stop_reason(result, reason) != "max_steps") & active
     rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
     values = np.full(mask.shape, np.nan)
-    for e in np.flatnonzero(active & ok):
+    for e in np.flatnonzero(ok):
         p = pmap.to_params(full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
         for k, name in enumerate(pmap.free):
             if mask[e, k]:

@@ -132,7 +132,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     t_traj = time.time() - t0
     log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({t_traj:.1f} s)")
 
-    # the trajectory method's consistency: one LM fit per experiment (vmap), each experiment fitting
+    # the trajectory method's consistency: one LM fit per experiment (one JIT), each experiment fitting
     # what the paper's regressions take from it (locked: K1, Tst; fast free motion: Jeff and the
     # viscous/Coulomb terms of the directions it covers; slow free motion: Stribeck), the rest fixed
     # at the joint estimate
