@@ -117,10 +117,14 @@ def _report(r: dict) -> str:
                   f"{x['n']} experiments)" + (f" — points at {x['points_at']}" if "points_at" in x else "") for x in drifts]
     infl = r["evidence"].get("weight_inflation", {})
     if infl:
-        lines += ["", "Residual weights: each channel is weighted by its sensor noise times the RMS of the paper "
-                  "model's weighted residual in that mode (process noise from the measured current, which drives "
-                  "the simulation, makes simulated motion wander): "
+        lines += ["", "Residual weights: each channel is weighted by √(sensor noise² + process noise²), the process "
+                  "noise measured by simulating the paper model with white noise of the current's own level added "
+                  "to the measured current (which drives the simulation); weight over sensor noise: "
                   + ", ".join(f"{k} ×{v:.2f}" for k, v in infl.items()) + "."]
+        rms = r["evidence"].get("base_residual_rms", {})
+        if rms:
+            lines += ["", "Paper model's residual RMS over sensor noise, per mode and channel: "
+                      + ", ".join(f"{k} ×{v:.2f}" for k, v in rms.items()) + "."]
     lines += ["", "## Candidates (held-out relative reduction of the weighted squared error, per round)", ""]
     for i, rnd in enumerate(r["candidates_by_round"]):
         lines.append(f"Round {i + 1}: " + ", ".join(f"{c} {100 * s['gain']:+.1f} %" for c, s in sorted(rnd.items(), key=lambda x: -x[1]["gain"])))
