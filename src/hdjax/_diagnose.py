@@ -55,7 +55,7 @@ from scipy import stats
 
 from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR, Effects
 from ._experiment import Experiment, stack_experiments
-from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map
+from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map, white_noise_level
 from ._model import Drive, Parameters
 from ._plant import Simulator, simulate
 from ._sharding import for_each_experiment
@@ -202,7 +202,7 @@ def _process_noise(simulate, batch: Experiment, r_ref: np.ndarray, *, realisatio
     puts into every simulation (the simulation is driven by the recorded current)."""
     m = np.asarray(batch.mask)
     cur = np.asarray(batch.current)
-    level = float(np.median([np.std(np.diff(cur[e][m[e]], 2)) / math.sqrt(6.0) for e in range(cur.shape[0])]))
+    level = float(np.median([white_noise_level(cur[e][m[e]]) for e in range(cur.shape[0])]))
     rng = np.random.default_rng(seed)
     d2 = np.zeros_like(r_ref)
     for _ in range(realisations):
@@ -316,10 +316,10 @@ def diagnose(
         timing["jacobians"] += time.perf_counter() - t1
         return np.array(J)[..., : len(sel)]
 
-    def simulate_each(zs):
-        """Weighted residuals (exp, 3, time) with experiment j simulated at zs[j]."""
+    def simulate_each(zs, data=batch):
+        """Weighted residuals (exp, 3, time) with experiment j of `data` simulated at zs[j]."""
         t1 = time.perf_counter()
-        r = np.array(prob.simulate(jnp.asarray(zs), p_base, batch, jnp.asarray(sig_exp)))
+        r = np.array(prob.simulate(jnp.asarray(zs), p_base, data, jnp.asarray(sig_exp)))
         timing["simulations"] += time.perf_counter() - t1
         return r
 
@@ -353,8 +353,7 @@ def diagnose(
             # √(sensor² + process²). (Not by the base model's residual RMS: that holds the very
             # misfit an effect leaves, and down-weighted the channel where e.g. thermal drift shows.)
             # Residuals and Jacobian rows scale exactly with the weights.
-            d2 = _process_noise(lambda b: prob.simulate(jnp.asarray(np.tile(z_cur, (n_exp, 1))), p_base, b,
-                                                        jnp.asarray(sig_exp)), batch, r_cur)
+            d2 = _process_noise(lambda b: simulate_each(np.tile(z_cur, (n_exp, 1)), b), batch, r_cur)
             for md in ("constrained", "free"):
                 selm = modes == md
                 for c, ch in enumerate(("torque", "motor_velocity", "output_position")):

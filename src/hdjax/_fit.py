@@ -92,10 +92,16 @@ def make_parameter_map(p0: Parameters, free) -> ParameterMap:
     return ParameterMap(free=free, scale=scale)
 
 
+def white_noise_level(x) -> float:
+    """White-noise std of a sampled signal: the second difference of a smooth signal plus white
+    noise of std σ has std $\\sqrt6\\,\\sigma$."""
+    return float(np.std(np.diff(np.asarray(x), 2)) / np.sqrt(6.0))
+
+
 def noise_levels(batch: Experiment) -> jax.Array:
     """Per-channel white-noise level (torque N·m, velocity rad/s, output position rad) estimated from
-    the data itself: the second difference of a smooth signal plus white noise of std σ has std
-    $\\sqrt6\\,\\sigma$. Median over experiments; position only over free-motion records."""
+    the data itself (`white_noise_level`). Median over experiments; position only over free-motion
+    records."""
     out = []
     m = np.asarray(batch.mask)
     free = np.asarray(batch.free) > 0
@@ -107,7 +113,7 @@ def noise_levels(batch: Experiment) -> jax.Array:
                 continue
             xe = x[e][m[e]]
             if len(xe) > 10:
-                v = np.std(np.diff(xe, 2)) / np.sqrt(6.0)
+                v = white_noise_level(xe)
                 if name == "output_position":
                     # a quantised encoder on a slow signal has mostly-zero second differences: floor
                     # at the quantisation noise q/sqrt(12), q = smallest non-zero step
