@@ -102,9 +102,10 @@ def test_two_effects_in_one_dataset():
 
 
 def test_process_noise_measures_the_current_noise_that_drives_the_simulation():
-    """The weights' process-noise term: for a simulation whose residual responds to the current as
-    gain·current (two channels), the Monte Carlo estimate is gain²·σ² with σ the current's white-noise
-    level, estimated from the data (sine + noise of std 0.02 A); zero where the residual ignores it."""
+    """The noise model's process-noise samples: for a simulation whose residual responds to the
+    current as gain·current (two channels), their variance is gain²·σ² with σ the current's
+    white-noise level, estimated from the data (sine + noise of std 0.02 A); zero where the residual
+    ignores it."""
     import jax.numpy as jnp
 
     from hdjax._diagnose import _process_noise
@@ -120,7 +121,37 @@ def test_process_noise_measures_the_current_noise_that_drives_the_simulation():
     def simulate(b):
         return jnp.asarray(gain)[None, :, None] * b.current[:, None, :]
 
-    d2 = _process_noise(simulate, batch, np.asarray(simulate(batch)), realisations=4)
-    got = d2.mean(axis=(0, 2))
+    d = _process_noise(simulate, batch, np.asarray(simulate(batch)), realisations=4)
+    assert d.shape == (4, 2, 3, 4000)
+    got = (d**2).mean(axis=(0, 1, 3))
     np.testing.assert_allclose(got[[0, 2]], gain[[0, 2]] ** 2 * 0.02**2, rtol=0.1)
     assert got[1] == 0.0
+
+
+def test_noise_model_whitens_random_walk_process_noise():
+    """Free-motion position wanders as a random walk driven by the current's noise, with a level
+    that differs by orders of magnitude between records. The AR noise model, fitted to two process
+    noise realisations plus unit sensor noise, must whiten a fresh realisation of each record to unit
+    variance with no correlation at lags 1–10 (the raw residual is far from that), and leave a record with
+    sensor noise only as it is."""
+    from hdjax._diagnose import _noise_model
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    scales = np.array([0.0, 0.05, 0.3])  # random-walk increments per sample, in sensor-noise units
+
+    def realisation():
+        return scales[:, None] * np.cumsum(rng.standard_normal((3, n)), axis=1)
+
+    proc = np.stack([realisation() for _ in range(2)])[:, :, None, :]  # (realisations, exp, channel, time)
+    mask = np.ones((3, n), bool)
+    model = _noise_model(proc, mask)
+    fresh = (realisation() + rng.standard_normal((3, n)))[:, None, :]
+    white = model.whiten(fresh)[:, 0]
+    for e in range(3):
+        assert abs(np.mean(white[e] ** 2) - 1.0) < 0.1, (e, np.mean(white[e] ** 2))
+        for lag in (1, 2, 3, 5, 10):
+            assert abs(np.corrcoef(white[e, lag:], white[e, :-lag])[0, 1]) < 0.06, (e, lag)
+    assert np.mean(fresh[2, 0] ** 2) > 10.0  # the raw residual is far from white unit noise
+    np.testing.assert_allclose(model.s[0, 0], 1.0, atol=0.05)
+    assert np.all(np.abs(model.a[0, 0]) < 0.1)

@@ -8,15 +8,18 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
 2. Evidence from residuals: order spectra against the simulated wave-generator angle θm (cycles
    per turn) for torque, velocity and output position, split locked/free, and correlations of the
    residuals with torsion, torsion³, |T|·sign(ω), di/dt and session time.
-3. Weights: each (mode, channel) is weighted by √(sensor noise² + process noise²). The recorded
-   current drives the simulation, so its noise makes the simulated motion wander (free-motion
-   velocity and position most); that process noise is measured by simulating the base model with
-   white noise of the current's own level added to the current (two seeded realisations). Not by
-   the base model's residual RMS: that holds the misfit an effect leaves and so down-weights the
-   very channel where it shows (thermal drift in free-motion velocity: ×61 instead of ×1.4).
+3. Noise model: the recorded current drives the simulation, so its sensor noise makes the
+   simulated velocity and output position wander beyond the sensor noise (in free motion a random
+   walk whose variance changes ×40 between records and ×10 between realisations). That process
+   noise is sampled by simulating the base model with white noise of the current's own level added
+   to the current (two seeded realisations); an AR(16) model per experiment and channel of it plus
+   the sensor noise whitens every residual and Jacobian (prediction-error weighting), so a correct
+   model leaves unit-variance white residuals and chance fits gain their nominal Δχ². Not the base
+   model's residual RMS: that holds the misfit an effect leaves and so down-weights the very
+   channel where it shows (thermal drift in free-motion velocity: ×61 instead of ×1.4).
 4. Candidates: every effect of `hdjax._effects` as a term inside the plant, all switched on at
    zero magnitude (which leaves the simulation equal to the base model). One forward-mode Jacobian
-   per round, of the weighted residuals of all experiments w.r.t. the base parameters, the
+   per round, of the whitened residuals of all experiments w.r.t. the base parameters, the
    accepted effects and every candidate's parameters, (a) refines base + accepted effects by
    Gauss–Newton steps with backtracking on the simulated error, (b) gives each candidate a
    Gauss–Newton fit of its parameters *with* the base parameters and the accepted effects on one
@@ -25,7 +28,7 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    cross-validation by experiment, both modes in each fold). The reference is the same fold fit
    without the candidate. Candidates are ranked by the linearised held-out gain;
    the best `confirm_top` are simulated.
-5. A finding needs, on held-out experiments: a reduction of the weighted squared error in both
+5. A finding needs, on held-out experiments: a reduction of the whitened squared error in both
    folds, above `min_relative_gain` in the locked or the free tests (the effect size where the
    effect acts, not diluted by the other mode), far beyond the chance level of its parameter count
    (Δχ² > 10k + 50), also without the held-out experiment that gains most (a term that fits one
@@ -197,18 +200,67 @@ def _solve_normal(JtJ: np.ndarray, Jtr: np.ndarray) -> np.ndarray:
 
 
 def _process_noise(simulate, batch: Experiment, r_ref: np.ndarray, *, realisations: int = 2, seed: int = 0) -> np.ndarray:
-    """Mean squared change of the (weighted) residuals when white noise of the recorded current's
-    own noise level is added to the current: the process noise that the current's sensor noise
-    puts into every simulation (the simulation is driven by the recorded current)."""
+    """Change of the (weighted) residuals when white noise of the recorded current's own noise
+    level is added to the current, shape (realisations, exp, channel, time): samples of the process
+    noise that the current's sensor noise puts into every simulation (the simulation is driven by
+    the recorded current)."""
     m = np.asarray(batch.mask)
     cur = np.asarray(batch.current)
     level = float(np.median([white_noise_level(cur[e][m[e]]) for e in range(cur.shape[0])]))
     rng = np.random.default_rng(seed)
-    d2 = np.zeros_like(r_ref)
+    out = []
     for _ in range(realisations):
         noisy = eqx.tree_at(lambda b: b.current, batch, jnp.asarray(cur + level * rng.standard_normal(cur.shape) * m))
-        d2 += (np.asarray(simulate(noisy)) - r_ref) ** 2 / realisations
-    return d2
+        out.append(np.asarray(simulate(noisy)) - r_ref)
+    return np.stack(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class _NoiseModel:
+    """Per (experiment, channel) autoregressive noise model of the sensor-weighted residual: white
+    sensor noise (unit variance) plus the process noise of the current. `whiten` applies the
+    prediction-error filter A(q) = 1 − Σ aᵢq⁻ⁱ and divides by the innovation std, so residuals of
+    a correct model become white with unit variance (and Jacobian columns transform alike)."""
+
+    a: np.ndarray  # (exp, channel, order)
+    s: np.ndarray  # (exp, channel)
+    mask: np.ndarray  # (exp, time)
+
+    def whiten(self, x: np.ndarray) -> np.ndarray:
+        """x: (exp, channel, time, ...) → whitened, zero on padding."""
+        from scipy.signal import lfilter
+
+        out = np.zeros_like(x)
+        for e in range(x.shape[0]):
+            n = int(self.mask[e].sum())
+            for c in range(x.shape[1]):
+                out[e, c, :n] = lfilter(np.r_[1.0, -self.a[e, c]], [1.0], x[e, c, :n], axis=0) / self.s[e, c]
+        return out
+
+
+def _noise_model(process: np.ndarray, mask: np.ndarray, *, order: int = 16, seed: int = 0) -> _NoiseModel:
+    """AR(`order`) fit (least squares) per experiment and channel to samples of its noise: the process
+    noise realisations `process` (realisations, exp, channel, time; sensor-weighted units) plus
+    seeded white noise of unit variance (the sensor noise). The random walk that the current's
+    noise drives in free-motion position has a level that varies by ×10 between realisations but
+    increments that thousands of samples pin down: whitening by its AR model weighs each experiment
+    by what it can tell, and makes Δχ² of chance fits follow their nominal distribution."""
+    rng = np.random.default_rng(seed)
+    R, n_exp, n_ch, _ = process.shape
+    a = np.zeros((n_exp, n_ch, order))
+    s = np.ones((n_exp, n_ch))
+    for e in range(n_exp):
+        n = int(mask[e].sum())
+        if n <= 10 * order:
+            continue
+        for c in range(n_ch):
+            x = process[:, e, c, :n] + rng.standard_normal((R, n))
+            X = np.concatenate([np.stack([xr[order - i - 1 : n - i - 1] for i in range(order)], 1) for xr in x])
+            y = np.concatenate([xr[order:] for xr in x])
+            coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+            a[e, c] = coef
+            s[e, c] = float(np.sqrt(np.mean((y - X @ coef) ** 2)))
+    return _NoiseModel(a=a, s=s, mask=np.asarray(mask))
 
 
 def _gn_step(r: np.ndarray, J: np.ndarray, rows, cols_idx) -> np.ndarray:
@@ -305,23 +357,28 @@ def diagnose(
     timing["simulations"] = 0.0
     all_rows = np.ones(n_exp, bool)
     sig_exp = np.tile(np.asarray(sigma), (n_exp, 1))
-    inflation, residual_rms = {}, {}
+    noise: list[_NoiseModel] = []  # set in round 1: every residual and Jacobian is whitened by it
+
     def jacobian(z, sel):
         t1 = time.perf_counter()
         n_t = -(-len(sel) // 8) * 8  # padded to a multiple of 8: few compiled shapes across datasets
         E = np.zeros((n_t, len(z)))
         E[np.arange(len(sel)), sel] = 1.0
         _, J = jac_prob.jacobian(jnp.asarray(z), jnp.asarray(E), p_base, batch, jnp.asarray(sig_exp))
-        J = np.array(J)
+        J = np.array(J)[..., : len(sel)]
+        if noise:
+            J = noise[0].whiten(J)
         timing["jacobians"] += time.perf_counter() - t1
-        return np.array(J)[..., : len(sel)]
+        return J
 
     def simulate_each(zs, data=batch):
-        """Weighted residuals (exp, 3, time) with experiment j of `data` simulated at zs[j]."""
+        """Residuals (exp, 3, time) with experiment j of `data` simulated at zs[j]: (whitened by the
+        noise model, weighted by the sensor noise)."""
         t1 = time.perf_counter()
         r = np.array(prob.simulate(jnp.asarray(zs), p_base, data, jnp.asarray(sig_exp)))
+        w = noise[0].whiten(r) if noise else r
         timing["simulations"] += time.perf_counter() - t1
-        return r
+        return w, r
 
     def per_exp(res):
         return np.sum(res**2, axis=(1, 2))
@@ -330,7 +387,7 @@ def diagnose(
     findings, rounds = [], []
     remaining = list(candidates)
     base_res = None
-    r_cur = simulate_each(np.tile(z_cur, (n_exp, 1)))
+    r_cur, r_raw = simulate_each(np.tile(z_cur, (n_exp, 1)))
     for rnd in range(max_findings + 1):
         if not remaining:
             break
@@ -345,32 +402,34 @@ def diagnose(
         log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
         J = jacobian(z_cur, sel)
         if rnd == 0:
-            # Effective noise per (mode, channel), fixed from here on so that all SSEs compare: the
-            # recorded current drives the simulation, so its sensor noise makes the simulated
-            # velocity and output position wander (a random walk in free motion) beyond the sensor
-            # noise. That process noise is measured by simulating the refined base model with white
-            # noise of the current's own level added to the current; each channel is weighted by
-            # √(sensor² + process²). (Not by the base model's residual RMS: that holds the very
-            # misfit an effect leaves, and down-weighted the channel where e.g. thermal drift shows.)
-            # Residuals and Jacobian rows scale exactly with the weights.
-            d2 = _process_noise(lambda b: simulate_each(np.tile(z_cur, (n_exp, 1)), b), batch, r_cur)
+            # Noise model, fixed from here on so that all SSEs compare: the recorded current drives
+            # the simulation, so its sensor noise makes the simulated velocity and output position
+            # wander (a random walk in free motion, ×1 to ×40 the sensor noise's variance from one
+            # record to the next) beyond the sensor noise. That process noise is sampled by
+            # simulating the refined base model with white noise of the current's own level added
+            # to the current; an AR model per experiment and channel of it plus the sensor noise
+            # whitens residuals and Jacobian (a linear filter along time: Gauss–Newton fits stay
+            # exact). Not the base model's residual RMS: that holds the very misfit an effect
+            # leaves, and down-weighted the channel where e.g. thermal drift shows.
+            proc = _process_noise(lambda b: simulate_each(np.tile(z_cur, (n_exp, 1)), b)[1], batch, r_raw)
+            noise.append(_noise_model(proc, m))
+            r_cur, J = noise[0].whiten(r_raw), noise[0].whiten(J)
+            ratio, raw_rms, white_rms = {}, {}, {}
             for md in ("constrained", "free"):
                 selm = modes == md
                 for c, ch in enumerate(("torque", "motor_velocity", "output_position")):
-                    rr = r_cur[selm, c][m[selm]]
+                    rr = r_raw[selm, c][m[selm]]
                     if not selm.any() or not np.any(rr != 0):
                         continue
-                    rms = float(np.sqrt(np.mean(rr**2)))
-                    f = float(np.sqrt(1.0 + min(np.mean(d2[selm, c][m[selm]]), max(rms**2 - 1.0, 0.0))))
-                    inflation[f"{md}/{ch}"] = f
-                    residual_rms[f"{md}/{ch}"] = rms
-                    sig_exp[selm, c] *= f
-                    r_cur[selm, c] /= f
-                    J[selm, c] /= f
-            evidence["weight_inflation"] = inflation
-            evidence["base_residual_rms"] = residual_rms
-            log("  weights: sensor noise × " + ", ".join(f"{k} {v:.2f}" for k, v in inflation.items()))
-            log("  base model residual RMS / sensor noise: " + ", ".join(f"{k} {v:.2f}" for k, v in residual_rms.items()))
+                    ratio[f"{md}/{ch}"] = float(np.sqrt(1.0 + np.mean(proc[:, selm, c][:, m[selm]] ** 2)))
+                    raw_rms[f"{md}/{ch}"] = float(np.sqrt(np.mean(rr**2)))
+                    white_rms[f"{md}/{ch}"] = float(np.sqrt(np.mean(r_cur[selm, c][m[selm]] ** 2)))
+            evidence["noise_over_sensor_noise"] = ratio
+            evidence["base_residual_rms"] = raw_rms
+            evidence["base_whitened_residual_rms"] = white_rms
+            log("  noise (sensor + process) / sensor noise: " + ", ".join(f"{k} {v:.2f}" for k, v in ratio.items()))
+            log("  base model residual RMS / sensor noise: " + ", ".join(f"{k} {v:.2f}" for k, v in raw_rms.items()))
+            log("  base model whitened residual RMS (1 = noise only): " + ", ".join(f"{k} {v:.2f}" for k, v in white_rms.items()))
 
         sse_cur = float(np.sum(r_cur**2))
         for it in range(refine_steps):
@@ -379,7 +438,7 @@ def diagnose(
             for frac in (1.0, 0.5, 0.25):
                 z = z_cur.copy()
                 z[active] += frac * delta
-                r = simulate_each(np.tile(z, (n_exp, 1)))
+                r, r_z = simulate_each(np.tile(z, (n_exp, 1)))
                 sse = float(np.sum(r**2))
                 if sse < sse_cur:
                     improved = True
@@ -387,8 +446,8 @@ def diagnose(
             if not improved:
                 break
             gain_it = 1.0 - sse / sse_cur
-            z_cur, r_cur, sse_cur = z, r, sse
-            log(f"  refit: weighted SSE {sse_cur:.5g} (step fraction {frac}, −{100 * gain_it:.2f} %)")
+            z_cur, r_cur, r_raw, sse_cur = z, r, r_z, sse
+            log(f"  refit: whitened SSE {sse_cur:.5g} (step fraction {frac}, −{100 * gain_it:.2f} %)")
             if gain_it < 1e-3:
                 break
         base_cols = list(range(n_base))
@@ -420,9 +479,9 @@ def diagnose(
             return np.array([np.sum(res[folds == f] ** 2) for f in (0, 1)])
 
         zs_before, pred_before = fold_steps(chosen_idx)
-        res_before = simulate_each(zs_before)
+        res_before, raw_before = simulate_each(zs_before)
         if base_res is None:
-            base_res = res_before
+            base_res = raw_before
         sse_before = fold_sse(res_before)
         e_before = per_exp(res_before)
         # screen every candidate by the linearised held-out error, then simulate the most promising
@@ -431,12 +490,12 @@ def diagnose(
             _, pred = fold_steps(chosen_idx + cand_idx[c])
             predicted[c] = 1.0 - fold_sse(pred).sum() / fold_sse(pred_before).sum()
         order = sorted(remaining, key=lambda c: -predicted[c])
-        scores, res_after_of = {}, {}
+        scores, raw_after_of = {}, {}
         for c in order:
             s = {"predicted_gain": float(predicted[c]), "k": len(cand_idx[c]), "simulated": False}
-            if len(res_after_of) < confirm_top and predicted[c] > 0.5 * min_relative_gain:
+            if len(raw_after_of) < confirm_top and predicted[c] > 0.5 * min_relative_gain:
                 zs, _ = fold_steps(chosen_idx + cand_idx[c])
-                res_after = simulate_each(zs)
+                res_after, raw_after = simulate_each(zs)
                 sse_after = fold_sse(res_after)
                 gain = 1.0 - sse_after.sum() / sse_before.sum()
                 dchi = float(sse_before.sum() - sse_after.sum())
@@ -457,7 +516,7 @@ def diagnose(
                          harm_ratio=harm, per_experiment_gain=(d / e_before).tolist(),
                          significant=bool(np.all(sse_after < sse_before) and max(mode_gains.values()) > min_relative_gain
                                           and dchi > chance and dchi_rest > chance))
-                res_after_of[c] = res_after
+                raw_after_of[c] = raw_after
             else:
                 s.update(gain=float(predicted[c]), significant=False)
             scores[c] = s
@@ -467,7 +526,7 @@ def diagnose(
                    + f", harm ratio {s['harm_ratio']:.2f})" if s["simulated"] else "")
                 + (" significant" if s["significant"] else ""))
             if s["simulated"]:
-                log("    per held-out experiment: " + " ".join(f"{100 * g:+.0f}" for g in s["per_experiment_gain"]) + " % of weighted SSE " + " ".join(f"{v:.0f}" for v in e_before))
+                log("    per held-out experiment: " + " ".join(f"{100 * g:+.0f}" for g in s["per_experiment_gain"]) + " % of whitened SSE " + " ".join(f"{v:.0f}" for v in e_before))
         rounds.append(scores)
         sig = [c for c in scores if scores[c]["significant"]]
         if not sig:
@@ -478,14 +537,14 @@ def diagnose(
         k = [col_of[j] for j in cand_idx[best]]
         z_try = z_cur.copy()
         z_try[cand_idx[best]] += _gn_step(r_cur, J, all_rows, k)
-        r_try = simulate_each(np.tile(z_try, (n_exp, 1)))
+        r_try, raw_try = simulate_each(np.tile(z_try, (n_exp, 1)))
         if float(np.sum(r_try**2)) < float(np.sum(r_cur**2)):
-            z_cur, r_cur = z_try, r_try
+            z_cur, r_cur, r_raw = z_try, r_try, raw_try
         log(f"  accepted {best}")
         chosen.append(best)
         s = scores[best]
-        before_n = _channel_nrmse(res_before, sig_exp, batch, m)
-        after_n = _channel_nrmse(res_after_of[best], sig_exp, batch, m)
+        before_n = _channel_nrmse(raw_before, sig_exp, batch, m)
+        after_n = _channel_nrmse(raw_after_of[best], sig_exp, batch, m)
         conf = float(1.0 - stats.chi2.sf(max(s["delta_chi2"], 0.0), s["k"])) if s["delta_chi2"] > 0 else 0.0
         findings.append({
             "effect": best,
@@ -514,7 +573,7 @@ def diagnose(
     tr1 = prob.trajectories(jnp.asarray(np.tile(z_cur, (n_exp, 1))), p_base, batch) if findings else tr0
     traces = {"torque_base": np.asarray(tr0.torque), "torque_extended": np.asarray(tr1.torque),
               "torsion_extended": np.asarray(tr1.torsion), "motor_position": np.asarray(tr1.motor_position)}
-    unexplained = _unexplained(batch, tr1, m, modes, sigma, r_cur * (sig_exp / np.asarray(sigma)[None, :])[..., None])
+    unexplained = _unexplained(batch, tr1, m, modes, sigma, r_raw, r_cur)
     timing["total"] = time.perf_counter() - t0
     base_n = _channel_nrmse(base_res, sig_exp, batch, m) if base_res is not None else {}
     return Diagnosis(findings=findings, unexplained=unexplained, baseline={"heldout_nrmse": base_n},
@@ -596,9 +655,10 @@ def _evidence(batch, traj, m, modes, sigma):
             "spectral_peaks": [{"where": w, "order": k, "amplitude": a, "threshold": t} for w, k, a, t in peak_list]}, orders
 
 
-def _unexplained(batch, traj, m, modes, sigma, r_meas) -> list[dict]:
+def _unexplained(batch, traj, m, modes, sigma, r_meas, r_white) -> list[dict]:
     """What the final model still leaves: residual order-spectrum peaks, and channels whose residual
-    stays well above the sensor noise (`r_meas`: residuals weighted by the sensor noise)."""
+    stays well above its noise (`r_meas`: residuals weighted by the sensor noise; `r_white`: the
+    same whitened by the noise model, unit RMS where only sensor and process noise are left)."""
     out = []
     _, left = _spectral_peaks(batch, traj, m, modes, sigma)
     for where, k, a, thr in sorted(left, key=lambda x: -x[2] / x[3])[:5]:
@@ -613,13 +673,16 @@ def _unexplained(batch, traj, m, modes, sigma, r_meas) -> list[dict]:
             rr = r_meas[sel, c][m[sel]]
             if not np.any(rr != 0):
                 continue
-            ratio = float(np.sqrt(np.mean(rr**2)))
-            if ratio > 1.5:
-                out.append({"description": f"{md} {ch} residual is {ratio:.1f}× its sensor noise",
-                            "evidence": "RMS of simulated − measured over the white-noise level estimated from the data. "
-                                        "Part of it is process noise: the recorded current drives the simulation, so "
-                                        "its noise makes the simulated motion wander (most in free-motion position); "
-                                        "the rest is an effect outside the candidate list or a mis-fit."})
+            white = float(np.sqrt(np.mean(r_white[sel, c][m[sel]] ** 2)))
+            if white > 1.5:
+                ratio = float(np.sqrt(np.mean(rr**2)))
+                out.append({"description": f"{md} {ch} residual is {ratio:.1f}× its sensor noise and {white:.1f}× its "
+                                           "noise model (sensor + process noise)",
+                            "evidence": "RMS of simulated − measured over the white-noise level estimated from the data, "
+                                        "and of the residual whitened by the noise model (the recorded current drives "
+                                        "the simulation, so its noise makes the simulated motion wander; that process "
+                                        "noise is measured by simulation). What stays above the noise model is an "
+                                        "effect outside the candidate list or a mis-fit."})
     return out
 
 
@@ -641,7 +704,7 @@ def _describe(effects: Effects, name: str, orders):
 
 def _evidence_text(name, evidence, round_scores, finding) -> str:
     g = finding["gain"]
-    txt = (f"adding {name} to the plant and re-fitting on half of the experiments reduces the weighted squared "
+    txt = (f"adding {name} to the plant and re-fitting on half of the experiments reduces the whitened squared "
            f"error of the other half by {100 * g['relative_reduction']:.1f} % (folds: "
            f"{', '.join(f'{100 * x:.1f} %' for x in g['fold_reductions'])}; "
            f"{', '.join(f'{k} tests {100 * x:.1f} %' for k, x in g['mode_reductions'].items())})")

@@ -115,17 +115,21 @@ def _report(r: dict) -> str:
                   "(Spearman p < 0.01; evidence only, findings need a held-out gain):", ""]
         lines += [f"- {x['parameter']} vs {x['covariate']}: ρ = {x['spearman_rho']:+.2f} (p = {x['p_value']:.1e}, "
                   f"{x['n']} experiments)" + (f" — points at {x['points_at']}" if "points_at" in x else "") for x in drifts]
-    infl = r["evidence"].get("weight_inflation", {})
-    if infl:
-        lines += ["", "Residual weights: each channel is weighted by √(sensor noise² + process noise²), the process "
-                  "noise measured by simulating the paper model with white noise of the current's own level added "
-                  "to the measured current (which drives the simulation); weight over sensor noise: "
-                  + ", ".join(f"{k} ×{v:.2f}" for k, v in infl.items()) + "."]
+    ratio = r["evidence"].get("noise_over_sensor_noise", {})
+    if ratio:
+        lines += ["", "Noise model: the measured current drives the simulation, so its sensor noise makes the simulated "
+                  "motion wander (process noise). It is sampled by simulating the paper model with white noise of the "
+                  "current's own level added to the current; an autoregressive model of it plus the sensor noise, per "
+                  "experiment and channel, whitens every residual before any fit or comparison. Noise RMS over sensor "
+                  "noise: " + ", ".join(f"{k} ×{v:.2f}" for k, v in ratio.items()) + "."]
         rms = r["evidence"].get("base_residual_rms", {})
+        white = r["evidence"].get("base_whitened_residual_rms", {})
         if rms:
             lines += ["", "Paper model's residual RMS over sensor noise, per mode and channel: "
-                      + ", ".join(f"{k} ×{v:.2f}" for k, v in rms.items()) + "."]
-    lines += ["", "## Candidates (held-out relative reduction of the weighted squared error, per round)", ""]
+                      + ", ".join(f"{k} ×{v:.2f}" for k, v in rms.items())
+                      + ("; whitened by the noise model (1 = noise only): "
+                         + ", ".join(f"{k} ×{v:.2f}" for k, v in white.items()) if white else "") + "."]
+    lines += ["", "## Candidates (held-out relative reduction of the whitened squared error, per round)", ""]
     for i, rnd in enumerate(r["candidates_by_round"]):
         lines.append(f"Round {i + 1}: " + ", ".join(f"{c} {100 * s['gain']:+.1f} %" for c, s in sorted(rnd.items(), key=lambda x: -x[1]["gain"])))
         lines.append("")
