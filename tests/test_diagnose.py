@@ -69,7 +69,7 @@ def test_hidden_effect_is_named(name):
     order, phase = spec if spec else (2, 0.3)
     effects = hide_effect(name, None, order=order, phase=phase, station=station)
     station, exps = _dataset(effects, seed=100 + list(CASES).index(name), free_first=name == "thermal_drift")
-    d = _diagnose(station, exps, max_findings=1)
+    d = _diagnose(station, exps, max_findings=2)
     print(name, [(f["effect"], f.get("orders")) for f in d.findings], {k: round(v, 1) for k, v in d.timing.items()},
           "\n" + _summary(d))
     assert d.findings, f"{name} hidden, nothing found:\n{_summary(d)}"
@@ -80,6 +80,8 @@ def test_hidden_effect_is_named(name):
     assert all(g > 0 for g in f["gain"]["fold_reductions"])
     if spec:
         assert order in f["orders"], (f["orders"], order)
+    # and nothing else: the misfit a fitted effect leaves is no second finding
+    assert len(d.findings) == 1, f"{name} hidden, also found {[g['effect'] for g in d.findings[1:]]}:\n{_summary(d)}"
 
 
 def test_clean_data_gives_no_finding():
