@@ -7,9 +7,10 @@ memory incl. XLA's buffers on the CPU backend, not a tracemalloc count, which mi
 allocations). Per configuration it prints:
 
 - `compile_s`: `jax.jit(jax.jacfwd(residuals)).lower(...).compile()` wall time (the residual and
-  its forward-mode Jacobian through the Rodas3 plant, as the fit evaluates them);
+  its forward-mode Jacobian through the Rodas3 plant, over the experiments as the fit evaluates them:
+  `hdjax._sharding.for_each_experiment`, i.e. `lax.map` on the CPU, `vmap` on accelerators);
 - `residual_s`, `jacobian_s`: one compiled evaluation of the noise-weighted residuals of all
-  experiments and of their 9-column Jacobian (median of 2);
+  experiments and of their 9-column Jacobian (median of 3);
 - `fit_s`: `fit_parameters(..., max_steps=K)` wall time including its own compilation, and the
   LM steps it took;
 - `rss_MB`: peak resident memory of the subprocess.
@@ -51,6 +52,7 @@ def one(n_exp: int, n_samples: int, max_steps: int) -> dict:
     from hdjax._experiment import Experiment
     from hdjax._fit import DEFAULT_FREE, experiment_residuals, fit_parameters, make_parameter_map, noise_levels
     from hdjax._paper_id import identify_paper
+    from hdjax._sharding import experiment_batching, for_each_experiment
 
     ds = load_dataset(ROOT / "data" / "hd2")
     dyn = ds.dynamic_indices()
@@ -72,7 +74,8 @@ def one(n_exp: int, n_samples: int, max_steps: int) -> dict:
 
     def residuals(theta, b):
         p = pmap.to_params(theta, p0)
-        return jax.vmap(lambda e: experiment_residuals(p, ds.drive, e, sigma, sim))(b).reshape(-1)
+        # as the fit evaluates them: `vmap` on accelerators, `lax.map` on the CPU
+        return for_each_experiment(lambda e: experiment_residuals(p, ds.drive, e, sigma, sim), b).reshape(-1)
 
     t0 = time.perf_counter()
     jac = jax.jit(jax.jacfwd(residuals)).lower(theta0, batch).compile()
@@ -81,7 +84,7 @@ def one(n_exp: int, n_samples: int, max_steps: int) -> dict:
 
     def timed(f):
         out = []
-        for _ in range(2):
+        for _ in range(3):
             t = time.perf_counter()
             jax.block_until_ready(f(theta0, batch))
             out.append(time.perf_counter() - t)
@@ -96,7 +99,7 @@ def one(n_exp: int, n_samples: int, max_steps: int) -> dict:
         "experiments": n_exp, "samples": n_samples, "compile_s": compile_s, "residual_s": residual_s,
         "jacobian_s": jacobian_s, "fit_s": fit_s, "lm_steps": fit.steps, "solver_steps_max": int(steps.max()),
         "solver_steps_mean": float(steps.mean()),
-        "rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "batching": experiment_batching(), "rss_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
 
 
