@@ -361,7 +361,7 @@ def diagnose(
     timing["simulations"] = 0.0
     all_rows = np.ones(n_exp, bool)
     sig_exp = np.tile(np.asarray(sigma), (n_exp, 1))
-    noise: list[_NoiseModel] = []  # set in round 1: every residual and Jacobian is whitened by it
+    noise: list[_NoiseModel] = []  # set in each round: every residual and Jacobian is whitened by it
 
     def jacobian(z, sel):
         t1 = time.perf_counter()
@@ -405,6 +405,13 @@ def diagnose(
         # screens the candidates; a slightly stale Jacobian still gives descent directions, and
         # every figure below is simulated.
         log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
+        if noise:
+            # the process noise of the model as it now stands (an accepted effect changes how the
+            # current's noise propagates, e.g. friction that varies with θm); every SSE compared
+            # within this round uses this one noise model
+            proc = _process_noise(lambda b: simulate_each(np.tile(z_cur, (n_exp, 1)), b)[1], batch, r_raw)
+            noise[0] = _noise_model(proc, m)
+            r_cur = noise[0].whiten(r_raw)
         J = jacobian(z_cur, sel)
         if rnd == 0:
             # Noise model, fixed from here on so that all SSEs compare: the recorded current drives
