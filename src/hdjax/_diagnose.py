@@ -14,7 +14,8 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    noise is sampled by simulating the base model with white noise of the current's own level added
    to the current (two seeded realisations); an AR(16) model per experiment and channel of it plus
    the sensor noise whitens every residual and Jacobian (prediction-error weighting), so a correct
-   model leaves unit-variance white residuals and chance fits gain their nominal Δχ². Not the base
+   model leaves unit-variance white residuals and chance fits gain their nominal Δχ². It is
+   re-estimated at the start of every round, at the model with the effects accepted so far. Not the base
    model's residual RMS: that holds the misfit an effect leaves and so down-weights the very
    channel where it shows (thermal drift in free-motion velocity: ×61 instead of ×1.4).
 4. Candidates: every effect of `hdjax._effects` as a term inside the plant, all switched on at
