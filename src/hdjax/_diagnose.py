@@ -58,6 +58,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import stats
+from scipy.signal import lfilter
 
 from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR, Effects
 from ._experiment import Experiment, stack_experiments
@@ -231,8 +232,6 @@ class _NoiseModel:
 
     def whiten(self, x: np.ndarray) -> np.ndarray:
         """x: (exp, channel, time, ...) → whitened, zero on padding."""
-        from scipy.signal import lfilter
-
         out = np.zeros_like(x)
         for e in range(x.shape[0]):
             n = int(self.mask[e].sum())
@@ -362,7 +361,7 @@ def diagnose(
     timing["simulations"] = 0.0
     all_rows = np.ones(n_exp, bool)
     sig_exp = np.tile(np.asarray(sigma), (n_exp, 1))
-    noise: list[_NoiseModel] = []  # set in each round: every residual and Jacobian is whitened by it
+    noise_model: _NoiseModel | None = None  # set in each round: every residual and Jacobian is whitened by it
 
     def jacobian(z, sel):
         t1 = time.perf_counter()
@@ -371,8 +370,8 @@ def diagnose(
         E[np.arange(len(sel)), sel] = 1.0
         _, J = jac_prob.jacobian(jnp.asarray(z), jnp.asarray(E), p_base, batch, jnp.asarray(sig_exp))
         J = np.array(J)[..., : len(sel)]
-        if noise:
-            J = noise[0].whiten(J)
+        if noise_model is not None:
+            J = noise_model.whiten(J)
         timing["jacobians"] += time.perf_counter() - t1
         return J
 
@@ -381,7 +380,7 @@ def diagnose(
         noise model, weighted by the sensor noise)."""
         t1 = time.perf_counter()
         r = np.array(prob.simulate(jnp.asarray(zs), p_base, data, jnp.asarray(sig_exp)))
-        w = noise[0].whiten(r) if noise else r
+        w = noise_model.whiten(r) if noise_model is not None else r
         timing["simulations"] += time.perf_counter() - t1
         return w, r
 
@@ -406,27 +405,22 @@ def diagnose(
         # screens the candidates; a slightly stale Jacobian still gives descent directions, and
         # every figure below is simulated.
         log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
-        if noise:
-            # the process noise of the model as it now stands (an accepted effect changes how the
-            # current's noise propagates, e.g. friction that varies with θm); every SSE compared
-            # within this round uses this one noise model
-            proc = _process_noise(lambda b: simulate_each(np.tile(z_cur, (n_exp, 1)), b)[1], batch, r_raw)
-            noise[0] = _noise_model(proc, m)
-            r_cur = noise[0].whiten(r_raw)
+        # Noise model of the model as it now stands, used by every SSE compared within this round:
+        # the recorded current drives the simulation, so its sensor noise makes the simulated
+        # velocity and output position wander (a random walk in free motion, ×1 to ×40 the sensor
+        # noise's variance from one record to the next) beyond the sensor noise. That process noise
+        # is sampled by simulating the current model with white noise of the current's own level
+        # added to the current; an AR model per experiment and channel of it plus the sensor noise
+        # whitens residuals and Jacobian (a linear filter along time: Gauss–Newton fits stay
+        # exact). Re-estimated every round: an accepted effect changes how the current's noise
+        # propagates (e.g. friction that varies with θm). Not the base model's residual RMS: that
+        # holds the very misfit an effect leaves, and down-weighted the channel where e.g. thermal
+        # drift shows.
+        proc = _process_noise(lambda b: simulate_each(np.tile(z_cur, (n_exp, 1)), b)[1], batch, r_raw)
+        noise_model = _noise_model(proc, m)
+        r_cur = noise_model.whiten(r_raw)
         J = jacobian(z_cur, sel)
         if rnd == 0:
-            # Noise model, fixed from here on so that all SSEs compare: the recorded current drives
-            # the simulation, so its sensor noise makes the simulated velocity and output position
-            # wander (a random walk in free motion, ×1 to ×40 the sensor noise's variance from one
-            # record to the next) beyond the sensor noise. That process noise is sampled by
-            # simulating the refined base model with white noise of the current's own level added
-            # to the current; an AR model per experiment and channel of it plus the sensor noise
-            # whitens residuals and Jacobian (a linear filter along time: Gauss–Newton fits stay
-            # exact). Not the base model's residual RMS: that holds the very misfit an effect
-            # leaves, and down-weighted the channel where e.g. thermal drift shows.
-            proc = _process_noise(lambda b: simulate_each(np.tile(z_cur, (n_exp, 1)), b)[1], batch, r_raw)
-            noise.append(_noise_model(proc, m))
-            r_cur, J = noise[0].whiten(r_raw), noise[0].whiten(J)
             ratio, raw_rms, white_rms = {}, {}, {}
             for md in ("constrained", "free"):
                 selm = modes == md
