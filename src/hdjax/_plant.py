@@ -200,6 +200,20 @@ def _vector_field(t, y, args):
     return dy
 
 
+def _at_sample_times(step_ts, step_ys, time):
+    """States at the sample instants, read off the saved solver steps (`SaveAt(t0=True, steps=True)`)
+    of a solve whose steps were clipped to land on every sample instant.
+
+    A clipped step ends on its sample up to a few ulps, so the nearest saved step is taken.
+    Unused step slots hold `inf` times and sort last; a failed solve (which stops early) is
+    reported by `Trajectory.success`."""
+    last = step_ts.shape[0] - 1
+    right = jnp.clip(jnp.searchsorted(step_ts, time), 0, last)
+    left = jnp.clip(right - 1, 0, last)
+    idx = jnp.where(jnp.abs(step_ts[left] - time) <= jnp.abs(step_ts[right] - time), left, right)
+    return jax.tree.map(lambda y: y[idx], step_ys)
+
+
 def simulate(
     p: Parameters,
     drive: Drive,
@@ -228,6 +242,15 @@ def simulate(
         pid = dfx.PIDController(rtol=simulator.rtol, atol=simulator.atol)
         controller = dfx.ClipStepSizeController(pid, step_ts=exp.time) if simulator.step_to_samples else pid
         dt0 = dt / 4
+    # Steps clipped to the sample instants end on every sample: then the samples are read off the
+    # saved steps (`SaveAt(steps=True)`, one array write per step) instead of diffrax's per-step
+    # search-and-interpolate for `SaveAt(ts=...)`, which cost more than the Rosenbrock step itself
+    # (benchmarks/RESULTS.md). Forward mode only: reverse mode would carry the step buffer.
+    save_steps = (
+        simulator.fixed_step is None
+        and simulator.step_to_samples
+        and isinstance(simulator.adjoint, dfx.ForwardMode)
+    )
     sol = dfx.diffeqsolve(
         dfx.ODETerm(_vector_field),
         simulator.solver,
@@ -236,20 +259,21 @@ def simulate(
         dt0=dt0,
         y0=y0,
         args=(p, drive, current, exp.free, exp.start_time, geometry, effects, simulator.smoothing),
-        saveat=dfx.SaveAt(ts=exp.time),
+        saveat=dfx.SaveAt(t0=True, steps=True) if save_steps else dfx.SaveAt(ts=exp.time),
         stepsize_controller=controller,
         adjoint=simulator.adjoint,
         max_steps=simulator.max_steps,
         throw=False,
     )
-    th_m, torsion, _, T = _outputs(p, drive, sol.ys, geometry, effects, simulator.smoothing)
+    ys = _at_sample_times(sol.ts, sol.ys, exp.time) if save_steps else sol.ys
+    th_m, torsion, _, T = _outputs(p, drive, ys, geometry, effects, simulator.smoothing)
     measured_T = T + effects.periodic("torque_sensor_ripple", th_m)
     return Trajectory(
         torque=measured_T,
-        motor_velocity=sol.ys[1],
+        motor_velocity=ys[1],
         motor_position=th_m,
-        output_position=sol.ys[2],
-        output_velocity=sol.ys[3],
+        output_position=ys[2],
+        output_velocity=ys[3],
         torsion=torsion,
         success=sol.result == dfx.RESULTS.successful,
         num_steps=sol.stats["num_accepted_steps"],
