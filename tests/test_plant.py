@@ -90,6 +90,32 @@ def test_both_batchings_give_the_single_runs(how, monkeypatch):
         np.testing.assert_allclose(np.asarray(trajs.torque[k, :n]), ref, rtol=0, atol=1e-6 * np.max(np.abs(ref)))
 
 
+def test_samples_read_off_the_clipped_steps_match_interpolated_saving(monkeypatch):
+    """With steps clipped to the samples, `simulate` reads the samples off the saved steps
+    (`SaveAt(steps=True)`, used when experiments run one at a time) instead of diffrax's
+    interpolation at `SaveAt(ts)` (used under `vmap`): same solver steps, same values."""
+    p, drive = hd2()
+    e = sine_experiment("free", freq=5.0, duration=0.15)
+    out = {}
+    for how in ("map", "vmap"):  # map: step read-off; vmap: SaveAt(ts)
+        monkeypatch.setenv("HDJAX_EXPERIMENT_BATCHING", how)
+        # a fresh function per setting: the setting is read when tracing, and a cached trace would hide it
+        out[how] = jax.jit(lambda p_, d_, e_: hdjax.simulate(p_, d_, e_))(p, drive, e)
+    assert int(out["map"].num_steps) == int(out["vmap"].num_steps)
+    for name in ("torque", "motor_velocity", "output_position", "output_velocity"):
+        a, b = np.asarray(getattr(out["map"], name)), np.asarray(getattr(out["vmap"], name))
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * np.max(np.abs(b)), err_msg=name)
+
+
+def test_at_sample_times_takes_the_nearest_step():
+    """Steps that end a few ulps off a sample, steps between samples and unused (inf) slots."""
+    time = jnp.asarray([0.0, 0.001, 0.002, 0.003])
+    ts = jnp.asarray([0.0, 0.0004, np.nextafter(0.001, 0.0), 0.0015, np.nextafter(0.002, 1.0), 0.003, np.inf, np.inf])
+    ys = (jnp.arange(8.0),)
+    (got,) = hdjax._plant._at_sample_times(ts, ys, time)
+    np.testing.assert_array_equal(np.asarray(got), [0.0, 2.0, 4.0, 5.0])
+
+
 def test_bad_batching_setting_is_named(monkeypatch):
     monkeypatch.setenv("HDJAX_EXPERIMENT_BATCHING", "pmap")
     with pytest.raises(ValueError, match="HDJAX_EXPERIMENT_BATCHING"):

@@ -30,7 +30,14 @@ from ._experiment import Experiment
 from ._solver import Rodas3
 from ._effects import Effects, dahl_rate, stiffness_torque
 from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_basis
-from ._sharding import experiment_mesh, for_each_experiment, is_concrete, map_experiments, shard_experiments
+from ._sharding import (
+    experiment_batching,
+    experiment_mesh,
+    for_each_experiment,
+    is_concrete,
+    map_experiments,
+    shard_experiments,
+)
 from ._smooth import smooth_signed_power
 
 
@@ -245,11 +252,15 @@ def simulate(
     # Steps clipped to the sample instants end on every sample: then the samples are read off the
     # saved steps (`SaveAt(steps=True)`, one array write per step) instead of diffrax's per-step
     # search-and-interpolate for `SaveAt(ts=...)`, which cost more than the Rosenbrock step itself
-    # (benchmarks/RESULTS.md). Forward mode only: reverse mode would carry the step buffer.
+    # (benchmarks/RESULTS.md). The step buffer holds `max_steps` states (8 MB at the default, times
+    # the number of forward-mode tangents), so only where experiments run one at a time
+    # (`experiment_batching() == "map"`, the CPU default; under `vmap` every lane would hold one)
+    # and in forward mode (reverse mode would carry the buffer through its checkpoints).
     save_steps = (
         simulator.fixed_step is None
         and simulator.step_to_samples
         and isinstance(simulator.adjoint, dfx.ForwardMode)
+        and experiment_batching() == "map"
     )
     sol = dfx.diffeqsolve(
         dfx.ODETerm(_vector_field),
