@@ -212,8 +212,9 @@ def main() -> None:
           f"{3 * n_samples} residuals); {len(DEFAULT_FREE)} free parameters; start = identify_paper on all "
           f"{len(dyn)} experiments; ODE rtol {args.ode_rtol:g}; noise levels {', '.join(f'{s:.3g}' for s in sig)}", flush=True)
 
+    simulator = hdjax.Simulator(rtol=args.ode_rtol, atol=args.ode_rtol * 1e-2)  # atol as in simulate_scipy
     # the reference must simulate the same model: compare both simulations at the start point
-    tr = eqx_sim(p0, ds.drive, batch, args.ode_rtol)
+    tr = eqx.filter_jit(hdjax.simulate_batch)(p0, ds.drive, batch, simulator=simulator)
     worst = 0.0
     for k, e in enumerate(plain):
         T, wm, tho = simulate_scipy(p0d, drive, e, args.method, args.ode_rtol)
@@ -253,7 +254,6 @@ def main() -> None:
         jax.debug.callback(record, kw["num_steps"][1], kw["loss_this_step"][1], kw["loss_last_accepted_step"][1])
 
     lm = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, verbose=observe)
-    simulator = hdjax.Simulator(rtol=args.ode_rtol, atol=args.ode_rtol * 1e-2)
     t0 = time.perf_counter()
     res = fit_parameters(p0, ds.drive, batch, free=DEFAULT_FREE, simulator=simulator, solver=lm,
                          max_steps=args.max_steps, sigma=sigma)
@@ -300,10 +300,6 @@ def main() -> None:
           f"{os.environ.get('XLA_FLAGS', '')!r}")
     print(f"time: scipy {t_scipy:.1f} s, hdjax {t_hdjax:.1f} s")
     print(f"speedup_vs_scipy: {t_scipy / t_hdjax:.2f}")
-
-
-def eqx_sim(p, drive, batch, rtol):
-    return eqx.filter_jit(hdjax.simulate_batch)(p, drive, batch, simulator=hdjax.Simulator(rtol=rtol, atol=rtol * 1e-2))
 
 
 if __name__ == "__main__":
