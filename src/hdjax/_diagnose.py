@@ -60,7 +60,7 @@ import numpy as np
 from scipy import stats
 from scipy.signal import lfilter
 
-from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR, Effects
+from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PERIODIC, SCALAR, Effects
 from ._experiment import Experiment, stack_experiments
 from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map, white_noise_level
 from ._model import Drive, Parameters
@@ -99,6 +99,14 @@ def _all_columns(ctx: dict) -> list[_Column]:
         _Column("thermal_drift", "beta", None, 1.0, 0.0),
         _Column("input_delay", "delay", None, ctx["dt"], 0.0),
         _Column("rate_independent_hysteresis", "Th", None, 0.03 * ctx["torque_max"], 0.0),
+        # SPEC §4b base-model assumptions (model_form), fitted like effects
+        _Column("low_speed_friction", "friction_scale", None, 1.0, 0.0),
+        _Column("low_speed_friction", "stribeck_scale", None, 1.0, 0.0),
+        _Column("sensor_offset", "torque_offset", None, ctx["torque_noise"], 0.0),
+        _Column("sensor_offset", "velocity_offset", None, ctx["velocity_noise"], 0.0),
+        _Column("sensor_offset", "current_offset", None, ctx["current_noise"], 0.0),
+        _Column("sensor_bandwidth", "torque_lag", None, ctx["dt"], 0.0),
+        _Column("sensor_bandwidth", "velocity_lag", None, ctx["dt"], 0.0),
     ]
     return cols
 
@@ -145,6 +153,7 @@ def _order_spectrum(res: np.ndarray, theta: np.ndarray):
 @dataclasses.dataclass
 class Diagnosis:
     findings: list
+    model_form: list
     unexplained: list
     baseline: dict
     evidence: dict
@@ -280,6 +289,7 @@ def diagnose(
     experiments: list[Experiment],
     *,
     candidates=EFFECT_NAMES,
+    model_form=MODEL_FORM_NAMES,
     base_free=DEFAULT_FREE,
     base_steps: int = 5,
     max_findings: int = 3,
@@ -287,6 +297,9 @@ def diagnose(
     refine_steps: int = 4,
     refine_jacobians: int = 3,
     confirm_top: int = 2,
+    per_record_noise: bool = True,
+    misfit_scaling: bool = True,
+    min_improved_fraction: float = 0.75,
     simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8),
     jacobian_rtol: float = 1e-5,
     log=lambda *_: None,
@@ -301,6 +314,13 @@ def diagnose(
     for that refit (a new one when the chord steps are still gaining), `confirm_top` candidates (best linearised held-out
     gain first) whose held-out gain is confirmed by simulation each round, `simulator` ODE
     numerics of every simulation, `jacobian_rtol` tolerance of the Jacobians (directions only).
+    `model_form` the SPEC §4b base-model assumptions screened (and all significant ones adopted)
+    in a first round, before any effect; `per_record_noise` weighs every experiment by its own
+    sensor-noise level (else one level per channel); `misfit_scaling` divides the whitened residual
+    of every (experiment, channel) by its RMS under the current model where that exceeds 1 (misfit
+    the model cannot explain counts as noise of that record, so no record's misfit dominates the
+    screening); `min_improved_fraction` of the held-out experiments of the mode where a candidate
+    acts must improve.
 
     **Returns:** a `Diagnosis` with findings (most important first), evidence, the extended model,
     stage timings (s) and simulated torque traces for the figures.
@@ -313,6 +333,10 @@ def diagnose(
     unknown = sorted(set(candidates) - set(EFFECT_NAMES))
     if unknown:
         raise ValueError(f"`diagnose`: unknown candidate effect(s) {unknown}; known: {list(EFFECT_NAMES)}.")
+    model_form = list(model_form)
+    unknown = sorted(set(model_form) - set(MODEL_FORM_NAMES))
+    if unknown:
+        raise ValueError(f"`diagnose`: unknown model_form assumption(s) {unknown}; known: {list(MODEL_FORM_NAMES)}.")
     batch = stack_experiments(experiments)
     n_exp = len(experiments)
     sigma = noise_levels(batch)
@@ -332,6 +356,9 @@ def diagnose(
         "K1": float(p_base.K1),
         "coulomb": 0.5 * (abs(float(p_base.Tsp)) + abs(float(p_base.Tsn))),
         "torque_noise": float(sigma[0]),
+        "velocity_noise": float(sigma[1]),
+        "current_noise": max(float(np.median([white_noise_level(np.asarray(batch.current[e])[m[e]]) for e in range(n_exp)])),
+                             1e-3 * float(np.max(np.abs(np.asarray(batch.current)[m])))),
         "torsion": float(np.max(np.abs(np.asarray(batch.torque)[m]))) / float(p_base.K1) or 1e-3,
         "torque_max": float(np.max(np.abs(np.asarray(batch.torque)[m]))),
         "dt": float(batch.time[0, 1] - batch.time[0, 0]),
@@ -339,7 +366,7 @@ def diagnose(
     }
     cols = _all_columns(ctx)
     prob = _Problem(pmap=pmap, cols=tuple(dataclasses.replace(c, scale=1.0, start=0.0) for c in cols),
-                    scales=jnp.asarray([c.scale for c in cols]), starts=jnp.asarray([c.start for c in cols]), effects=_fixed_effect_settings(ctx, candidates), drive=drive,
+                    scales=jnp.asarray([c.scale for c in cols]), starts=jnp.asarray([c.start for c in cols]), effects=_fixed_effect_settings(ctx, list(candidates) + model_form), drive=drive,
                     simulator=simulator)
     # Jacobians only set Gauss–Newton directions (every accepted step and held-out figure is a
     # simulation at `simulator`'s tolerance), so they are computed at a looser tolerance
@@ -356,11 +383,15 @@ def diagnose(
         idx = np.where(modes == md)[0]
         folds[idx] = np.arange(len(idx)) % 2
 
-    cand_idx = {c: [n_base + j for j in _candidate_columns(cols, c, orders)] for c in candidates}
+    cand_idx = {c: [n_base + j for j in _candidate_columns(cols, c, orders)] for c in list(candidates) + model_form}
     timing["jacobians"] = 0.0
     timing["simulations"] = 0.0
     all_rows = np.ones(n_exp, bool)
     sig_exp = np.tile(np.asarray(sigma), (n_exp, 1))
+    if per_record_noise:
+        # every record at its own sensor-noise level (a bench may scale the noise with the range)
+        sig_exp = np.stack([np.asarray(noise_levels(stack_experiments([e]))) for e in experiments])
+        sig_exp[:, 2] = np.where(modes == "free", sig_exp[:, 2], float(sigma[2]))
     noise_model: _NoiseModel | None = None  # set in each round: every residual and Jacobian is whitened by it
 
     def jacobian(z, sel):
@@ -387,17 +418,23 @@ def diagnose(
     def per_exp(res):
         return np.sum(res**2, axis=(1, 2))
 
-    chosen: list[str] = []
-    findings, rounds = [], []
+    chosen: list[str] = []  # effects found (SPEC §4)
+    adopted: list[str] = []  # base-model assumptions loosened (SPEC §4b)
+    findings, rounds, form_items = [], [], []
     remaining = list(candidates)
     base_res = None
     r_cur, r_raw = simulate_each(np.tile(z_cur, (n_exp, 1)))
-    for rnd in range(max_findings + 1):
-        if not remaining:
+    for rnd in range(max_findings + 1 + (1 if model_form else 0)):
+        # round 0 screens the base model's own assumptions (model_form); every significant one is
+        # adopted before any effect is screened, so that effects are judged against a base model
+        # that describes this bench as far as its form allows
+        form_round = rnd == 0 and bool(model_form)
+        pool = model_form if form_round else remaining
+        if not pool:
             break
-        chosen_idx = [j for c in chosen for j in cand_idx[c]]
+        chosen_idx = [j for c in adopted + chosen for j in cand_idx[c]]
         active = list(range(n_base)) + chosen_idx
-        sel = active + [j for c in remaining for j in cand_idx[c]]
+        sel = active + [j for c in pool for j in cand_idx[c]]
         col_of = {j: k for k, j in enumerate(sel)}
         # One Jacobian per round (w.r.t. the base, the accepted effects and every candidate), at the
         # current model. It refines base + accepted effects by chord Gauss–Newton steps with
@@ -418,6 +455,17 @@ def diagnose(
         # drift shows.
         proc = _process_noise(lambda b: simulate_each(np.tile(z_cur, (n_exp, 1)), b)[1], batch, r_raw)
         noise_model = _noise_model(proc, m)
+        r_white0 = noise_model.whiten(r_raw)
+        if misfit_scaling:
+            # per-record levels: what the current model leaves in an (experiment, channel) beyond
+            # its noise model counts as that record's noise (a bench is never exactly the model)
+            rho = np.ones(noise_model.s.shape)
+            for e in range(n_exp):
+                for c in range(3):
+                    v = r_white0[e, c, : int(m[e].sum())]
+                    if np.any(v != 0):
+                        rho[e, c] = max(1.0, float(np.sqrt(np.mean(v**2))))
+            noise_model = dataclasses.replace(noise_model, s=noise_model.s * rho)
         r_cur = noise_model.whiten(r_raw)
         J = jacobian(z_cur, sel)
         if rnd == 0:
@@ -430,7 +478,7 @@ def diagnose(
                         continue
                     ratio[f"{md}/{ch}"] = float(np.sqrt(1.0 + np.mean(proc[:, selm, c][:, m[selm]] ** 2)))
                     raw_rms[f"{md}/{ch}"] = float(np.sqrt(np.mean(rr**2)))
-                    white_rms[f"{md}/{ch}"] = float(np.sqrt(np.mean(r_cur[selm, c][m[selm]] ** 2)))
+                    white_rms[f"{md}/{ch}"] = float(np.sqrt(np.mean(r_white0[selm, c][m[selm]] ** 2)))
             evidence["noise_over_sensor_noise"] = ratio
             evidence["base_residual_rms"] = raw_rms
             evidence["base_whitened_residual_rms"] = white_rms
@@ -505,14 +553,14 @@ def diagnose(
         e_before = per_exp(res_before)
         # screen every candidate by the linearised held-out error, then simulate the most promising
         predicted = {}
-        for c in remaining:
+        for c in pool:
             _, pred = fold_steps(chosen_idx + cand_idx[c])
             predicted[c] = 1.0 - fold_sse(pred).sum() / fold_sse(pred_before).sum()
-        order = sorted(remaining, key=lambda c: -predicted[c])
+        order = sorted(pool, key=lambda c: -predicted[c])
         scores, raw_after_of = {}, {}
         for c in order:
             s = {"predicted_gain": float(predicted[c]), "k": len(cand_idx[c]), "simulated": False}
-            if len(raw_after_of) < confirm_top and predicted[c] > 0.5 * min_relative_gain:
+            if len(raw_after_of) < (len(pool) if form_round else confirm_top) and predicted[c] > 0.5 * min_relative_gain:
                 zs, _ = fold_steps(chosen_idx + cand_idx[c])
                 res_after, raw_after = simulate_each(zs)
                 sse_after = fold_sse(res_after)
@@ -533,13 +581,18 @@ def diagnose(
                 # and a term that makes one kind of test worse beyond chance explains no drive: a
                 # spurious order-1 kinematic error fitted to locked tests loses on the free ones
                 mode_dchi = {md: float(np.sum(d[modes == md])) for md in mode_gains}
+                # consistency over records: most held-out experiments of the mode where it acts
+                # must improve (misfit that one term absorbs in a few records is no finding)
+                acting = max(mode_gains, key=mode_gains.get)
+                improved = float(np.mean(d[modes == acting] > 0))
                 s.update(simulated=True, gain=float(gain), fold_gains=(1 - sse_after / sse_before).tolist(), delta_chi2=dchi,
                          delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
                          harm_ratio=harm, per_experiment_gain=(d / e_before).tolist(),
-                         mode_delta_chi2=mode_dchi,
+                         mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
                          significant=bool(np.all(sse_after < sse_before) and max(mode_gains.values()) > min_relative_gain
                                           and dchi > chance and dchi_rest > chance
-                                          and min(mode_dchi.values()) > -chance))
+                                          and min(mode_dchi.values()) > -chance
+                                          and improved >= min_improved_fraction))
                 raw_after_of[c] = raw_after
             else:
                 s.update(gain=float(predicted[c]), significant=False)
@@ -554,17 +607,36 @@ def diagnose(
         rounds.append(scores)
         sig = [c for c in scores if scores[c]["significant"]]
         if not sig:
+            if form_round:
+                continue
             break
-        best = max(sig, key=lambda c: scores[c]["gain"])
-        # accept: start the effect at its all-experiment GN fit (effect columns only); the next
+        if form_round:
+            for c in sorted(sig, key=lambda c: -scores[c]["gain"]):
+                s = scores[c]
+                form_items.append({
+                    "assumption": c,
+                    "gain": {"heldout_nrmse_before": _channel_nrmse(raw_before, sig_exp, batch, m),
+                             "heldout_nrmse_after": _channel_nrmse(raw_after_of[c], sig_exp, batch, m) if c in raw_after_of else None,
+                             "relative_reduction": s["gain"], "fold_reductions": s["fold_gains"],
+                             "mode_reductions": s["mode_gains"], "improved_fraction": s["improved_fraction"]},
+                    "_round": len(rounds) - 1,
+                })
+            accept = sorted(sig, key=lambda c: -scores[c]["gain"])
+        else:
+            accept = [max(sig, key=lambda c: scores[c]["gain"])]
+        # accept: start the new terms at their all-experiment GN fit (their columns only); the next
         # round's refinement re-fits base and effects jointly
-        k = [col_of[j] for j in cand_idx[best]]
+        new_cols = [j for c in accept for j in cand_idx[c]]
         z_try = z_cur.copy()
-        z_try[cand_idx[best]] += _gn_step(r_cur, J, all_rows, k)
+        z_try[new_cols] += _gn_step(r_cur, J, all_rows, [col_of[j] for j in new_cols])
         r_try, raw_try = simulate_each(np.tile(z_try, (n_exp, 1)))
         if float(np.sum(r_try**2)) < float(np.sum(r_cur**2)):
             z_cur, r_cur, r_raw = z_try, r_try, raw_try
-        log(f"  accepted {best}")
+        log(f"  accepted {', '.join(accept)}")
+        if form_round:
+            adopted.extend(accept)
+            continue
+        best = accept[0]
         chosen.append(best)
         s = scores[best]
         before_n = _channel_nrmse(raw_before, sig_exp, batch, m)
@@ -585,7 +657,10 @@ def diagnose(
             break
 
     current_p = pmap.to_params(jnp.asarray(z_cur[:n_base]), p_base)
-    final_effects = _apply(_fixed_effect_settings(ctx, chosen), cols, z_cur[n_base:])
+    final_effects = _apply(_fixed_effect_settings(ctx, adopted + chosen), cols, z_cur[n_base:])
+    for f in form_items:
+        f["adjustment"] = {k: float(getattr(final_effects, k)) for k in MODEL_FORM[f["assumption"]]}
+        f["evidence"] = _evidence_text(f["assumption"], evidence, rounds[f.pop("_round")], f)
     for f in findings:
         f["parameters"], f["orders"] = _describe(final_effects, f["effect"], orders)
         f["evidence"] = _evidence_text(f["effect"], evidence, rounds[f.pop("_round")], f)
@@ -593,7 +668,7 @@ def diagnose(
             f.pop("orders")
     # torque of the final base parameters without / with the effects (figures), and what is left
     z_plain = z_cur.copy()
-    z_plain[n_base:] = 0.0
+    z_plain[[j for c in chosen for j in cand_idx[c]]] = 0.0
     tr0 = prob.trajectories(jnp.asarray(np.tile(z_plain, (n_exp, 1))), p_base, batch)
     tr1 = prob.trajectories(jnp.asarray(np.tile(z_cur, (n_exp, 1))), p_base, batch) if findings else tr0
     traces = {"torque_base": np.asarray(tr0.torque), "torque_extended": np.asarray(tr1.torque),
@@ -601,7 +676,7 @@ def diagnose(
     unexplained = _unexplained(batch, tr1, m, modes, sigma, r_raw, r_cur)
     timing["total"] = time.perf_counter() - t0
     base_n = _channel_nrmse(base_res, sig_exp, batch, m) if base_res is not None else {}
-    return Diagnosis(findings=findings, unexplained=unexplained, baseline={"heldout_nrmse": base_n},
+    return Diagnosis(findings=findings, model_form=form_items, unexplained=unexplained, baseline={"heldout_nrmse": base_n},
                      evidence=evidence, params=current_p, effects=final_effects, rounds=rounds,
                      timing=timing, traces=traces)
 

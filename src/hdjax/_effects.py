@@ -18,6 +18,15 @@ the coefficients, which keeps the fit well conditioned.
 | `thermal_drift` | viscous × $(1 + \beta e^{-t_{session}/\tau})$ |
 | `input_delay` | $K_m i(t - \tau_d)$ ($\tau_d$ s) |
 | `rate_independent_hysteresis` | Dahl state $z$: $\dot z = (\dot{\Delta\theta}/\sigma)(1 - z\,\mathrm{sign}(\dot{\Delta\theta}))$, $T$ += $T_h z$ |
+
+Base-model assumptions (SPEC §4b, `MODEL_FORM`) are loosened by the same mechanism; they are not
+physics of the drive but of the bench and of the paper model's fixed choices:
+
+| assumption | adjustment |
+|---|---|
+| `low_speed_friction` | friction regularisation scale × $e^{\lambda_s}$ (`friction_scale` = $\lambda_s$) and Stribeck velocity $T_{ss2}$ × $e^{\lambda_v}$ (`stribeck_scale` = $\lambda_v$) |
+| `sensor_offset` | measured torque += `torque_offset` (N·m), measured velocity += `velocity_offset` (rad/s), true current = recorded − `current_offset` (A) |
+| `sensor_bandwidth` | first-order low-pass of the simulated torque and velocity with time constants `torque_lag`, `velocity_lag` (s) |
 """
 
 import dataclasses
@@ -40,6 +49,13 @@ SCALAR = {
     "rate_independent_hysteresis": ("Th", "sigma"),
 }
 EFFECT_NAMES = PERIODIC + tuple(SCALAR)
+#: SPEC §4b: base-model assumptions the diagnosis may loosen before it screens effects.
+MODEL_FORM = {
+    "low_speed_friction": ("friction_scale", "stribeck_scale"),
+    "sensor_offset": ("torque_offset", "velocity_offset", "current_offset"),
+    "sensor_bandwidth": ("torque_lag", "velocity_lag"),
+}
+MODEL_FORM_NAMES = tuple(MODEL_FORM)
 
 
 def _zeros():
@@ -74,11 +90,19 @@ class Effects(eqx.Module):
     delay: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     Th: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     sigma: Float[Array, ""] = eqx.field(default=1e-4, converter=_as_float)
+    friction_scale: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    stribeck_scale: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    torque_offset: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    velocity_offset: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    current_offset: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    torque_lag: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    velocity_lag: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
 
     def __check_init__(self):
-        unknown = set(self.active) - set(EFFECT_NAMES)
+        unknown = set(self.active) - set(EFFECT_NAMES) - set(MODEL_FORM)
         if unknown:
-            raise ValueError(f"`Effects`: unknown effect(s) {sorted(unknown)}; known: {list(EFFECT_NAMES)}.")
+            raise ValueError(f"`Effects`: unknown effect(s) {sorted(unknown)}; known: "
+                             f"{list(EFFECT_NAMES) + list(MODEL_FORM)}.")
 
     def periodic(self, name: str, theta_m):
         """$\\sum_k s_k\\sin(k\\theta_m) + c_k\\cos(k\\theta_m)$ for a periodic effect (0 if inactive)."""
@@ -115,7 +139,7 @@ class Effects(eqx.Module):
 
     def with_values(self, name: str, **values) -> "Effects":
         """A copy with the scalar parameters of effect `name` set and the effect switched on."""
-        allowed = SCALAR[name]
+        allowed = SCALAR[name] if name in SCALAR else MODEL_FORM[name]
         bad = set(values) - set(allowed)
         if bad:
             raise ValueError(f"`Effects.with_values`: {name} takes {allowed}, got {sorted(bad)}.")

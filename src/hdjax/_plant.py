@@ -191,11 +191,40 @@ def _outputs(p, drive, y, geometry, effects: Effects, smoothing: Smoothing):
     return th_m, torsion, rate, T
 
 
+def _low_speed_friction(p: Parameters, effects: Effects, smoothing: Smoothing):
+    """`low_speed_friction` (SPEC §4b): the friction regularisation scale and the Stribeck velocity
+    Tss2 multiplied by exp(`friction_scale`) and exp(`stribeck_scale`)."""
+    if "low_speed_friction" not in effects.active:
+        return p, smoothing
+    smoothing = Smoothing(
+        velocity_scale=smoothing.velocity_scale * jnp.exp(effects.friction_scale),
+        torsion_rate_scale=smoothing.torsion_rate_scale,
+    )
+    return eqx.tree_at(lambda q: q.Tss2, p, p.Tss2 * jnp.exp(effects.stribeck_scale)), smoothing
+
+
+def _first_order_lag(x: Float[Array, " time"], tau, dt) -> Float[Array, " time"]:
+    """First-order low-pass (time constant `tau` s, backward-Euler discretisation
+    y[n] = a·y[n−1] + (1−a)·x[n], a = τ/(τ+Δt)), started at y[0] = x[0]. Identity at τ = 0, with
+    a finite derivative there (∂a/∂τ = 1/Δt), so a sensor lag can be fitted from zero."""
+    a = tau / (tau + dt)
+
+    def step(y, xn):
+        y = a * y + (1.0 - a) * xn
+        return y, y
+
+    _, ys = jax.lax.scan(step, x[0], x[1:])
+    return jnp.concatenate([x[:1], ys])
+
+
 def _vector_field(t, y, args):
     p, drive, current, free, start_time, geometry, effects, smoothing = args
     q, wm, th_o, wo = y[:4]
     th_m, torsion, rate, T = _outputs(p, drive, y, geometry, effects, smoothing)
     i = current.evaluate(t - effects.delay) if "input_delay" in effects.active else current.evaluate(t)
+    if "sensor_offset" in effects.active:
+        i = i - effects.current_offset
+    p, smoothing = _low_speed_friction(p, effects, smoothing)
     drive_torque = drive.torque_constant * i + effects.periodic("cogging", th_m)
     Tf = _friction(p, drive, wm, th_m, T, start_time + t, effects, smoothing)
     dwm = (drive_torque - T / drive.gear_ratio - Tf) / p.Jeff
@@ -236,7 +265,15 @@ def simulate(
     should be ignored by the caller. Under `vmap`, failures are reported in `Trajectory.success`
     rather than raised.
     """
-    y0, th_m0 = initial_state(p, drive, exp, simulator)
+    if "sensor_offset" in effects.active:  # the initial state from offset-free readings
+        init_exp = eqx.tree_at(
+            lambda e: (e.torque, e.motor_velocity),
+            exp,
+            (exp.torque - effects.torque_offset, exp.motor_velocity - effects.velocity_offset),
+        )
+    else:
+        init_exp = exp
+    y0, th_m0 = initial_state(p, drive, init_exp, simulator)
     if "rate_independent_hysteresis" in effects.active:
         y0 = y0 + (jnp.zeros_like(y0[0]),)
     geometry = (y0[0], y0[2], th_m0)
@@ -279,9 +316,18 @@ def simulate(
     ys = _at_sample_times(sol.ts, sol.ys, exp.time) if save_steps else sol.ys
     th_m, torsion, _, T = _outputs(p, drive, ys, geometry, effects, simulator.smoothing)
     measured_T = T + effects.periodic("torque_sensor_ripple", th_m)
+    measured_w = ys[1]
+    if "sensor_bandwidth" in effects.active:
+        # smooth through τ = 0 (where the fit starts); a negative τ (a lead, |a| < 1) is allowed
+        # down to −0.45 Δt so that the map stays smooth there and stable everywhere
+        measured_T = _first_order_lag(measured_T, jnp.maximum(effects.torque_lag, -0.45 * dt), dt)
+        measured_w = _first_order_lag(measured_w, jnp.maximum(effects.velocity_lag, -0.45 * dt), dt)
+    if "sensor_offset" in effects.active:
+        measured_T = measured_T + effects.torque_offset
+        measured_w = measured_w + effects.velocity_offset
     return Trajectory(
         torque=measured_T,
-        motor_velocity=ys[1],
+        motor_velocity=measured_w,
         motor_position=th_m,
         output_position=ys[2],
         output_velocity=ys[3],

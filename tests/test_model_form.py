@@ -1,0 +1,102 @@
+"""The base-model assumptions that the diagnosis may loosen (SPEC §4b, `hdjax._effects.MODEL_FORM`):
+each is the identity at its start value, acts as documented, and has finite, correct derivatives
+there (they are fitted from zero)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from helpers import hd1, sine_experiment
+from scipy.signal import lfilter
+
+import hdjax
+from hdjax._plant import _first_order_lag
+
+
+SIM = hdjax.Simulator(fixed_step=2.5e-4)  # fixed steps: the discrete solution is smooth in the parameters
+
+
+def _run(effects, mode="constrained"):
+    p, drive = hd1()
+    exp = sine_experiment(mode, amplitude=1.5, duration=0.3)
+    return hdjax.simulate(p, drive, exp, effects=effects, simulator=SIM)
+
+
+def test_model_form_terms_are_the_identity_at_their_start_values():
+    base = _run(hdjax.Effects())
+    on = hdjax.Effects(active=frozenset({"low_speed_friction", "sensor_offset", "sensor_bandwidth"}))
+    tr = _run(on)
+    np.testing.assert_allclose(np.asarray(tr.torque), np.asarray(base.torque), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(tr.motor_velocity), np.asarray(base.motor_velocity), rtol=0, atol=1e-12)
+
+
+def test_sensor_offsets_shift_the_measured_channels_only():
+    """Readings = base simulation + offsets: the offset model reproduces them (its initial state is
+    taken from the offset-free readings)."""
+    p, drive = hd1()
+    exp = sine_experiment("constrained", amplitude=1.5, duration=0.3)
+    base = hdjax.simulate(p, drive, exp, simulator=SIM)
+    meas = hdjax.make_experiment(np.asarray(exp.time), np.asarray(exp.current), np.asarray(base.torque) + 0.3,
+                                 np.asarray(base.motor_velocity) - 0.05, mode="constrained",
+                                 output_position=np.asarray(base.output_position))
+    eff = hdjax.Effects().with_values("sensor_offset", torque_offset=0.3, velocity_offset=-0.05)
+    tr = hdjax.simulate(p, drive, meas, effects=eff, simulator=SIM)
+    np.testing.assert_allclose(np.asarray(tr.torque - base.torque), 0.3, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(tr.motor_velocity - base.motor_velocity), -0.05, atol=1e-6)
+
+
+def test_current_offset_acts_as_a_constant_motor_torque():
+    """Recorded current = true current + offset: the plant sees i − offset, so a current offset
+    equals a current record shifted by the same amount."""
+    p, drive = hd1()
+    exp = sine_experiment("constrained", amplitude=1.5, duration=0.3)
+    off = 0.2
+    shifted = hdjax.make_experiment(np.asarray(exp.time), np.asarray(exp.current) - off, np.asarray(exp.torque),
+                                    np.asarray(exp.motor_velocity), mode="constrained",
+                                    output_position=np.asarray(exp.output_position))
+    a = hdjax.simulate(p, drive, exp, effects=hdjax.Effects().with_values("sensor_offset", current_offset=off), simulator=SIM)
+    b = hdjax.simulate(p, drive, shifted, simulator=SIM)
+    np.testing.assert_allclose(np.asarray(a.torque), np.asarray(b.torque), atol=1e-9)
+
+
+def test_first_order_lag_matches_scipy_and_is_identity_at_zero():
+    x = np.random.default_rng(0).standard_normal(200)
+    dt, tau = 1e-3, 2.5e-3
+    a = tau / (tau + dt)
+    # y[n] = a y[n-1] + (1 - a) x[n], started at y[0] = x[0]
+    ref = lfilter([1 - a], [1, -a], x[1:], zi=[a * x[0]])[0]
+    got = np.asarray(_first_order_lag(jnp.asarray(x), tau, dt))
+    np.testing.assert_allclose(got[1:], ref, rtol=1e-12, atol=1e-12)
+    assert got[0] == x[0]
+    np.testing.assert_array_equal(np.asarray(_first_order_lag(jnp.asarray(x), 0.0, dt)), x)
+
+
+def test_model_form_derivatives_at_zero_match_finite_differences():
+    """Forward-mode AD through the solve w.r.t. each model-form parameter at its start value (0),
+    against 4-point central differences."""
+    p, drive = hd1()
+    exp = sine_experiment("constrained", amplitude=1.5, duration=0.2)
+    on = hdjax.Effects(active=frozenset({"low_speed_friction", "sensor_offset", "sensor_bandwidth"}))
+    fields = ("friction_scale", "stribeck_scale", "torque_offset", "current_offset", "torque_lag")
+    scale = {"friction_scale": 1.0, "stribeck_scale": 1.0, "torque_offset": 0.1, "current_offset": 0.05,
+             "torque_lag": 1e-3}
+
+    def torque(v, field):
+        eff = jax.tree_util.tree_map(lambda x: x, on)
+        eff = eqx_set(eff, field, v * scale[field])
+        return hdjax.simulate(p, drive, exp, effects=eff, simulator=SIM).torque
+
+    for field in fields:
+        ad = np.asarray(jax.jvp(lambda v: torque(v, field), (0.0,), (1.0,))[1])
+        h = 1e-3
+        fd = (-torque(2 * h, field) + 8 * torque(h, field) - 8 * torque(-h, field) + torque(-2 * h, field)) / (12 * h)
+        fd = np.asarray(fd)
+        assert np.all(np.isfinite(ad)), field
+        assert np.linalg.norm(ad) > 0, f"{field}: zero derivative at the start value"
+        err = np.linalg.norm(ad - fd) / np.linalg.norm(fd)
+        assert err < 1e-4, f"{field}: AD vs FD relative error {err:.2e}"
+
+
+def eqx_set(effects, field, value):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda e: getattr(e, field), effects, jnp.asarray(value, dtype=float))
