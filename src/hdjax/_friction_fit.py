@@ -30,6 +30,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.signal
 
 from ._data import FrictionExperiment
 from ._friction import (
@@ -271,6 +272,7 @@ class FrictionProblem:
         scale[list(LOG_INDICES)] = 1.0
         self.scale = jnp.asarray(scale)
         self.E, self.N = self.mask.shape
+        self.fs = sample_rates(self.data)
         self.stride = max(1, -(-self.E * self.N // int(self.max_fit_samples)))
         self.index = jnp.arange(0, self.N, self.stride)
 
@@ -320,6 +322,11 @@ class FrictionProblem:
         thr = 3.0 * self.smoothing.velocity_scale
         return int(np.sum(on & (self.v > thr))), int(np.sum(on & (self.v < -thr)))
 
+    def eq9_identifiable(self, w: np.ndarray) -> bool:
+        """True when samples `w > 0` hold enough motion in at least one direction for eq. 9."""
+        npos, nneg = self.directions(w)
+        return max(npos, nneg) >= max(MIN_DIRECTION_SAMPLES, MIN_DIRECTION_FRACTION * (npos + nneg))
+
     def tie_for(self, w: np.ndarray) -> int:
         npos, nneg = self.directions(w)
         need = max(MIN_DIRECTION_SAMPLES, MIN_DIRECTION_FRACTION * (npos + nneg))
@@ -327,7 +334,8 @@ class FrictionProblem:
             raise ValueError(
                 f"friction fit ({', '.join(self.files)}): only {npos} positive and {nneg} negative velocity samples "
                 f"beyond {3 * self.smoothing.velocity_scale:g} rad/s; eq. 9 needs at least {need:.0f} in one direction. "
-                "Record motion, or lower `velocity_scale`.")
+                "Record motion, or lower `velocity_scale`; friction recorded wholly at low speed is fitted by the "
+                "low-speed law instead (`hdjax._friction_lowspeed.fit_low_speed`, used by `fit` automatically).")
         return TIE_NONE if min(npos, nneg) >= need else (TIE_NEG_TO_POS if npos >= need else TIE_POS_TO_NEG)
 
     def base_free(self, tie: int) -> np.ndarray:
@@ -449,12 +457,116 @@ def physical_std_errors(x: np.ndarray, se: np.ndarray, scale) -> np.ndarray:
     return out
 
 
-def rms_stats(pred: np.ndarray, meas: np.ndarray, w: np.ndarray) -> dict:
-    """RMS error (N·m) and NRMSE (RMS error / RMS of measured minus its mean) on samples w > 0."""
+LOWPASS_HZ = 1.0  # cutoff of the low-passed RMS (the published joint-friction comparisons' convention)
+LOWPASS_ORDER = 4
+
+
+def matlab_filtfilt(b, a, x: np.ndarray) -> np.ndarray:
+    """Zero-phase forward–backward filtering as MATLAB's `filtfilt(b, a, x)` does it.
+
+    MATLAB extends the signal at both ends by an *odd* reflection about the end sample
+    (`2·x(1) − x(nfact+1:-1:2)`), of length `nfact = 3·(nfilt − 1)` with
+    `nfilt = max(length(a), length(b))`, and starts each pass from the filter's steady state for
+    the first sample (`lfilter_zi` times that sample). scipy's `filtfilt` does the same with
+    `padtype="odd"` except that its default `padlen` is `3·nfilt`, three samples longer; here it is
+    set to MATLAB's (and to `len(x) − 1` for shorter signals, where MATLAB refuses)."""
+    x = np.asarray(x, dtype=float)
+    padlen = min(3 * (max(len(a), len(b)) - 1), x.size - 1)
+    return scipy.signal.filtfilt(b, a, x, padtype="odd", padlen=padlen)
+
+
+def filtered_rms(residual, fs: float, cutoff_hz: float = LOWPASS_HZ, order: int = LOWPASS_ORDER) -> float:
+    """RMS (N·m) of a residual low-passed by a zero-phase Butterworth filter: `order`-th order
+    `scipy.signal.butter(order, cutoff_hz / (fs / 2))` in transfer-function form (as MATLAB's
+    `butter` returns it; at 1 Hz and 500 Hz the 4th-order `b, a` agree with second-order
+    sections to 5e-8 relative), applied forward and backward by `matlab_filtfilt`, RMS over every
+    sample of the contiguous record `residual` sampled at `fs` (Hz).
+
+    This is how the published joint-friction comparisons (e.g. the NNFM study's RMS table) score a
+    model: residual = measured − predicted friction torque, low-passed at 1 Hz, RMS over the whole
+    file. It measures the slow, systematic part of the error and ignores sensor noise and fast
+    dynamics above the cutoff; report it beside the raw RMS, never instead of it. NaN when the
+    cutoff is not below the Nyquist frequency or the record has fewer than 3 samples."""
+    r = np.asarray(residual, dtype=float)
+    if r.size < 3 or not cutoff_hz < 0.5 * fs:
+        return float("nan")
+    b, a = scipy.signal.butter(order, cutoff_hz / (0.5 * fs))
+    return float(np.sqrt(np.mean(matlab_filtfilt(b, a, r) ** 2)))
+
+
+def sample_rates(data: FrictionExperiment) -> np.ndarray:
+    """Sample rate (Hz) of each record of a stacked batch: 1 / median time step of its samples."""
+    t, m = np.asarray(data.time), np.asarray(data.mask)
+    return np.array([1.0 / float(np.median(np.diff(t[e][m[e]]))) if m[e].sum() > 1 else np.nan
+                     for e in range(t.shape[0])])
+
+
+def _runs(on: np.ndarray) -> list[tuple[int, int]]:
+    d = np.diff(np.concatenate([[0], on.astype(int), [0]]))
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+
+
+def lowpass_sq_sum(err: np.ndarray, on: np.ndarray, fs, cutoff_hz: float = LOWPASS_HZ,
+                   order: int = LOWPASS_ORDER) -> tuple[float, int]:
+    """(sum of squares, samples) of `err` (experiment, time) low-passed as in `filtered_rms`, each
+    contiguous run of selected samples `on` filtered on its own (a held-out part is filtered
+    without the training samples around it); runs too short to filter are left out."""
+    ss, n = 0.0, 0
+    for e in range(err.shape[0]):
+        for i, j in _runs(on[e]):
+            f = filtered_rms(err[e, i:j], float(fs[e]), cutoff_hz, order)
+            if np.isfinite(f):
+                ss += f**2 * (j - i)
+                n += j - i
+    return ss, n
+
+
+def rms_stats(pred: np.ndarray, meas: np.ndarray, w: np.ndarray, fs=None) -> dict:
+    """RMS error (N·m) and NRMSE (RMS error / RMS of measured minus its mean) on samples w > 0.
+
+    With `fs` (sample rate per record, Hz; `pred`, `meas`, `w` shaped (experiment, time)) also
+    `rms_lowpass_1hz`: the RMS of the error low-passed at `LOWPASS_HZ` (`filtered_rms`, each
+    contiguous run of selected samples filtered on its own), the published comparisons' metric."""
     on = w > 0
     if not on.any():
-        return {"rms": float("nan"), "nrmse": float("nan"), "n": 0}
+        out = {"rms": float("nan"), "nrmse": float("nan"), "n": 0}
+        return out | ({"rms_lowpass_1hz": float("nan")} if fs is not None else {})
     err = (pred - meas)[on]
     m = meas[on]
     rms = float(np.sqrt(np.mean(err**2)))
-    return {"rms": rms, "nrmse": rms / max(float(np.std(m)), 1e-300), "n": int(on.sum())}
+    out = {"rms": rms, "nrmse": rms / max(float(np.std(m)), 1e-300), "n": int(on.sum())}
+    if fs is not None:
+        ss, n = lowpass_sq_sum(np.atleast_2d(pred - meas), np.atleast_2d(on), np.atleast_1d(fs))
+        out["rms_lowpass_1hz"] = float(np.sqrt(ss / n)) if n else float("nan")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- special case
+
+
+def coulomb_viscous_basis(v: np.ndarray, smoothing: Smoothing) -> np.ndarray:
+    """Regressors (..., 2) of symmetric Coulomb + viscous friction, `Tv·ω + Tc·sign(ω)`, with the
+    same smooth sign as eq. 9: eq. 9 with `Tvp = Tvn`, `Tsp = Tsn` and no Stribeck term."""
+    return np.stack([v, np.tanh(v / smoothing.velocity_scale)], -1)
+
+
+def fit_coulomb_viscous(problem: "FrictionProblem", w: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Weighted linear least squares of `Tv·ω + Tc·sign(ω)` on samples `w > 0` of `problem`:
+    `({"Tv", "Tc"}, standard errors (2,), prediction (experiment, time))`. Standard errors are
+    `s²(AᵀA)⁻¹` inflated for correlated residuals like `FrictionProblem.std_errors`."""
+    A = coulomb_viscous_basis(problem.v, problem.smoothing)
+    on = (w > 0) & problem.mask
+    sw = np.sqrt(w[on])
+    c, *_ = np.linalg.lstsq(A[on] * sw[:, None], problem.T[on] * sw, rcond=None)
+    pred = A @ c
+    n_eff, n = 0.0, int(on.sum())
+    for e in range(problem.E):
+        re = (pred - problem.T)[e][on[e]]
+        if re.size < 3:
+            continue
+        d = re - re.mean()
+        rho = float(np.clip(np.sum(d[1:] * d[:-1]) / max(np.sum(d * d), 1e-300), 0.0, 0.999))
+        n_eff += re.size * (1 - rho) / (1 + rho)
+    s2 = float(np.sum(((pred - problem.T)[on] * sw) ** 2)) / max(n - 2, 1)
+    cov = s2 * n / max(n_eff, 3.0) * np.linalg.pinv((A[on] * sw[:, None]).T @ (A[on] * sw[:, None]))
+    return {"Tv": float(c[0]), "Tc": float(c[1])}, np.sqrt(np.clip(np.diag(cov), 0, None)), pred
