@@ -455,6 +455,26 @@ def test_csv_time_not_increasing(tmp_path):
         load_dataset(folder)
 
 
+def test_csv_time_error_prints_plain_numbers(tmp_path):
+    """The message shows the times as the CSV has them (`0.06 s`), not `np.float64(0.06) s`."""
+    rows = _good_rows()
+    rows[5][0], rows[6][0] = rows[6][0], rows[5][0]
+    folder = _make_folder(tmp_path, rows=rows)
+    with pytest.raises(DatasetError) as info:
+        load_dataset(folder)
+    msg = str(info.value)
+    assert "np.float64" not in msg and "float64" not in msg
+    assert "(0.06 s on line 7, then 0.05 s)" in msg
+
+
+def test_csv_uneven_time_prints_plain_numbers(tmp_path):
+    rows = [[f"{t:.6g}", 1, 2, 3] for t in [0.0, 0.01, 0.02, 0.03, 0.05, 0.06, 0.07, 0.08]]
+    folder = _make_folder(tmp_path, rows=rows)
+    with pytest.raises(DatasetError) as info:
+        load_dataset(folder)
+    assert "np.float64" not in str(info.value) and "uneven time step: 0.02" in str(info.value)
+
+
 def test_csv_repeated_time(tmp_path):
     rows = _good_rows()
     rows[3][0] = rows[2][0]

@@ -756,7 +756,7 @@ def _check_time(path, time: np.ndarray, lines: list[int]) -> None:
         raise _error(
             path,
             f"line {lines[k]}, column `time`",
-            f"time is not strictly increasing ({time[k - 1]!r} s on line {lines[k - 1]}, then {time[k]!r} s)",
+            f"time is not strictly increasing ({float(time[k - 1])!r} s on line {lines[k - 1]}, then {float(time[k])!r} s)",
             "Sort the rows by time and remove repeated samples; split separate records into separate files.",
         )
     step = float(np.median(dt))
@@ -767,7 +767,7 @@ def _check_time(path, time: np.ndarray, lines: list[int]) -> None:
         raise _error(
             path,
             f"line {lines[k]}, column `time`",
-            f"uneven time step: {dt[k - 1]!r} s from line {lines[k - 1]}, against a median step of {step!r} s "
+            f"uneven time step: {float(dt[k - 1])!r} s from line {lines[k - 1]}, against a median step of {step!r} s "
             f"({100 * jitter[k - 1]:.3g} % off; {bad.size} step(s) exceed the {100 * _MAX_JITTER:g} % tolerance)",
             "Resample the record onto a uniform grid yourself or split it at the gap into separate files; "
             "hdjax never resamples.",
