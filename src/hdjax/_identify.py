@@ -19,7 +19,7 @@ from ._data import Dataset
 from ._experiment import stack_experiments
 from ._fit import DEFAULT_FREE, fit_per_experiment, fit_parameters, nrmse
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
-from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Parameters, compliance_torque
+from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Parameters
 from ._paper_id import identify_paper
 from ._plant import Simulator, simulate_batch
 
@@ -219,7 +219,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
         params_json[k] = entry
 
     log("[4/4] report and figures")
-    figs = _figures(out, res.params, paper, full, traj, modes, files, drive)
+    figs = _figures(out, res.params, paper, full, traj, modes, files, drive, exps)
     total = time.time() - t_start
     result = {
         "schema": "hdjax.fit/1",
@@ -312,30 +312,71 @@ def _report(r: dict, truth) -> str:
     return "\n".join(lines)
 
 
-def _figures(out, p: Parameters, paper, full, traj, modes, files, drive) -> list[str]:
+def hysteresis_curves(paper, experiment, drive, j: int) -> dict:
+    """Fig. 3's data for constrained experiment `j` (its index in the list given to
+    `identify_paper`): the measured torsion θm/N and torque, and eq. 5 with the paper's two
+    compliance regressions of this record, evaluated on the same filtered signals they were fitted
+    to: the linear one at the fixed α (`paper.estimates["alpha"]`, K1, Tst and torsion offset of
+    this record) and the nonlinear one at this record's optimal α (its own K1, Tst and offset).
+
+    Each curve is its own parameter set's least-squares fit of this loop, and the nonlinear
+    regression starts from the linear one's solution at α = ½ (`_compliance_nonlinear_one`), so the
+    optimal-α curve fits at least as well as the α = ½ one when the fixed α is ½. (Swapping the
+    optimal α into the joint fit's K1 and Tst, which were fitted at α = ½, does not.)
+
+    **Returns:** a dict with `torsion` (rad), `torque` (N·m, measured), and `curves`: a list of
+    `{"label", "alpha", "K1", "Tst", "offset", "torque", "rms"}` (`rms` against the filtered torque
+    the regressions fit), the fixed-α curve first; a regression that did not determine this record
+    is left out.
+    """
+    from ._paper_id import _TORSION_RATE_SCALE, _prepare
+    from ._smooth import smooth_signed_power
+
+    opts = paper.details.get("options", {})
+    q, _, _ = _prepare([experiment], drive, opts.get("cutoff_hz", 50.0), opts.get("filter_order", 5), [])
+    n = int(np.asarray(q.mask[0]).sum())
+    tors, rate, T_filt = (np.asarray(x[0])[:n] for x in (q.torsion, q.torsion_rate, q.torque))
+    n_meas = int(np.asarray(experiment.mask).sum())
+    sets = []
+    a_fixed = float(paper.estimates.get("alpha", 0.5))
+    K1, Tst = paper.per_experiment["K1"][j], paper.per_experiment["Tst"][j]
+    c = paper.details.get("torsion_offset", [np.nan] * (j + 1))[j]
+    if all(np.isfinite(v) for v in (K1, Tst, c)):
+        sets.append((f"regression at fixed α = {a_fixed:.3g}", a_fixed, K1, Tst, c))
+    nl = paper.alpha_nonlinear or {}
+    if j in nl.get("indices", []):
+        k = nl["indices"].index(j)
+        if nl["converged"][k] and np.isfinite(nl["alpha"][k]):
+            sets.append((f"regression at optimal α = {nl['alpha'][k]:.3f}", nl["alpha"][k], nl["K1"][k], nl["Tst"][k],
+                         nl["offset"][k]))
+    curves = []
+    for label, a, K1, Tst, c in sets:
+        model = K1 * (tors + c) + Tst * np.asarray(smooth_signed_power(jnp.asarray(rate), a, _TORSION_RATE_SCALE))
+        curves.append({"label": label, "alpha": float(a), "K1": float(K1), "Tst": float(Tst), "offset": float(c),
+                       "torque": model, "rms": float(np.sqrt(np.mean((model - T_filt) ** 2)))})
+    return {"torsion": tors, "torque": np.asarray(experiment.torque)[:n_meas][:n], "curves": curves}
+
+
+def _figures(out, p: Parameters, paper, full, traj, modes, files, drive, experiments) -> list[str]:
     m = np.asarray(full.mask)
     t = np.asarray(full.time)
     cons = [j for j, md in enumerate(modes) if md == "constrained"]
     free = [j for j, md in enumerate(modes) if md == "free"]
     names = []
 
-    # Fig. 3: hysteresis torsion curve, measured vs model at optimal alpha and alpha = 1/2
+    # Fig. 3: hysteresis torsion curve of the locked record with the largest torque, with the
+    # paper's two compliance regressions of that record (each its own least-squares fit)
     if cons:
         j = max(cons, key=lambda j: float(np.max(np.abs(np.asarray(full.torque[j])[m[j]]))))
-        tors = np.asarray(traj.torsion[j])[m[j]]
-        rate = np.gradient(tors, t[j][m[j]])
-        a_opt = paper.alpha_nonlinear.get("mean") if isinstance(paper.alpha_nonlinear, dict) else None
+        loop = hysteresis_curves(paper, experiments[j], drive, j)
         fig, ax = plt.subplots(figsize=(6, 4.5))
-        ax.plot(tors * 1e3, np.asarray(full.torque[j])[m[j]], ".", ms=2, color="0.6", label="measured")
-        if a_opt is not None and np.isfinite(a_opt):
-            T_opt = compliance_torque(p.replace(alpha=a_opt), jnp.asarray(tors), jnp.asarray(rate))
-            ax.plot(tors * 1e3, np.asarray(T_opt), "-.", label=f"model, optimal α = {a_opt:.3f}")
-        T_half = compliance_torque(p.replace(alpha=0.5), jnp.asarray(tors), jnp.asarray(rate))
-        ax.plot(tors * 1e3, np.asarray(T_half), "--", label="model, α = 1/2")
-        ax.set_xlabel("torsion Δθ (mrad)")
+        ax.plot(loop["torsion"] * 1e3, loop["torque"], ".", ms=2, color="0.6", label="measured")
+        for c, style in zip(loop["curves"], ("--", "-.")):
+            ax.plot(loop["torsion"] * 1e3, c["torque"], style, label=f"{c['label']} (RMS error {c['rms']:.3g} N·m)")
+        ax.set_xlabel("torsion Δθ = θm/N (mrad)")
         ax.set_ylabel("torque T (N·m)")
         ax.set_title(f"Hysteresis torsion curve ({files[j]})")
-        ax.legend()
+        ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
         atomic_savefig(fig, out / "fig3_hysteresis.png", dpi=120, bbox_inches="tight")
         plt.close(fig)
