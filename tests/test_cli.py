@@ -21,3 +21,129 @@ def test_fit_bad_dataset_names_file_and_field(tmp_path):
     r = _run(str(tmp_path), "--out", str(tmp_path / "out"))
     assert r.returncode == 2
     assert "dataset.yaml" in r.stderr and "mode" in r.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# The `hdjax` command: one parser, strict configs, run.log, report.html, --quiet
+
+import pathlib
+
+import pytest
+
+from hdjax import _cli
+from hdjax._config import ConfigError, check_keys, section_options
+
+
+def _help(capsys, argv):
+    with pytest.raises(SystemExit) as e:
+        _cli.main(argv)
+    assert e.value.code == 0
+    return " ".join(capsys.readouterr().out.split())  # help text wraps with the terminal width
+
+
+def test_help_lists_commands_and_every_option_with_its_default(capsys):
+    top = _help(capsys, ["--help"])
+    for cmd in ("fit", "diagnose", "sensitivity", "tune"):
+        assert cmd in top
+    fit = _help(capsys, ["fit", "--help"])
+    for opt in ("TARGET", "--out DIR", "--quiet", "default: results/<TARGET name>", "default: off"):
+        assert opt in fit, opt
+    # the config file's options, with their defaults
+    for line in ("fit.alpha = 0.5", "fit.Tss2 = 0.1", "fit.trajectory.max_steps = 20", "fit.trajectory.rtol = 1e-05"):
+        assert line in fit, line
+    sens = _help(capsys, ["sensitivity", "--help"])
+    assert "--fit FIT_JSON" in sens and "sensitivity.rtol = 0.0001" in sens and "results/<TARGET name>-sensitivity" in sens
+    tune = _help(capsys, ["tune", "--help"])
+    assert "tune.plants = 6" in tune and "--fit FIT_JSON" in tune
+    diag = _help(capsys, ["diagnose", "--help"])
+    assert "diagnose.max_findings = 3" in diag
+
+
+def test_module_mains_are_the_same_command():
+    from hdjax import diagnose, fit, sensitivity, tune
+
+    for mod in (fit, diagnose, sensitivity, tune):
+        assert callable(mod.main)
+    r = subprocess.run([sys.executable, "-m", "hdjax.sensitivity", "--help"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "usage: hdjax sensitivity" in r.stdout and "--fit FIT_JSON" in r.stdout
+    assert "sensitivity.max_experiments = 50" in r.stdout
+
+
+def test_unknown_key_names_the_nearest_valid_one():
+    with pytest.raises(ConfigError, match=r"\['plantz'\] \(`plantz`: did you mean `plants`\?\)"):
+        check_keys({"plantz": 1}, ["plants", "seed"], "config `tune:`")
+    with pytest.raises(ConfigError, match=r"`fit.trajectory:`.*`max_step`: did you mean `max_steps`"):
+        section_options({"fit": {"trajectory": {"max_step": 3}}}, "fit", {"alpha": 0.5, "trajectory": {"max_steps": 20}},
+                        nested=("trajectory",))
+    opts = section_options({"fit": {"alpha": 0.4}}, "fit", {"alpha": 0.5, "trajectory": {"max_steps": 20}},
+                           nested=("trajectory",))
+    assert opts == {"alpha": 0.4, "trajectory": {"max_steps": 20}}
+
+
+@pytest.mark.parametrize(
+    "text, key, nearest",
+    [
+        ("fit:\n  alpah: 0.5\n", "alpah", "alpha"),
+        ("fit:\n  trajectory:\n    max_experimnts: 4\n", "max_experimnts", "max_experiments"),
+        ("tunee:\n  plants: 3\n", "tunee", "tune"),
+        ("diagnose:\n  max_finding: 2\n", "max_finding", "max_findings"),
+    ],
+)
+def test_config_with_unknown_key_is_refused_before_any_work(tmp_path, capsys, text, key, nearest):
+    cfg = tmp_path / "configs" / "c.yaml"
+    cfg.parent.mkdir()
+    cfg.write_text("dataset: ../../../data/hd2\n".replace("../../../data/hd2", str(_repo() / "data" / "hd2")) + text)
+    assert _cli.main(["fit", str(cfg), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"`{key}`: did you mean `{nearest}`?" in err
+    assert not (tmp_path / "out").exists()
+
+
+def _repo() -> pathlib.Path:
+    return pathlib.Path(__file__).resolve().parents[1]
+
+
+def _fake_run(command, dataset, config, out, log):
+    """Stands in for a workflow: logs, shows a bar, writes report.md with a table and a figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hdjax._progress import task
+
+    log(f"[1/1] {command} on {dataset.name}")
+    with task(log, "work", 3, unit="items") as bar:
+        for k in range(3):
+            bar.advance(1, info=f"item {k}", line=f"  detail {k}")
+    out.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(4, 3))
+    ax.plot([0, 1, 2], [0, 1, 4], color="C3", lw=4)
+    fig.savefig(out / "fig1.png", dpi=80)
+    plt.close(fig)
+    (out / "report.md").write_text(
+        "# Report of `x`\n\nSome **text**.\n\n| parameter | value |\n|---|---|\n| K1 | 5970 |\n| Tst | 60.2 |\n\n"
+        "## Figures\n\n![fig1.png](fig1.png)\n", encoding="utf-8")
+
+
+def test_run_log_report_html_and_quiet(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(_cli, "_run_command", _fake_run)
+    out = tmp_path / "out"
+    assert _cli.main(["tune", str(_repo() / "data" / "hd2"), "--out", str(out), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err == ""
+    log = (out / "run.log").read_text()
+    assert "[1/1] tune on hd2" in log and "detail 2" in log and "work: 3/3 items" in log and "report.html" in log
+    html = (out / "report.html").read_text()
+    assert "<table>" in html and "<td>5970</td>" in html and 'src="data:image/png;base64,' in html
+    assert "fig1.png\"" not in html.replace('alt="fig1.png"', "")  # embedded, not linked
+    # not quiet: the lines are printed too
+    assert _cli.main(["tune", str(_repo() / "data" / "hd2"), "--out", str(out)]) == 0
+    assert "[1/1] tune on hd2" in capsys.readouterr().out
+
+
+def test_default_output_folders():
+    assert _cli.default_out("fit", "configs/hd2.yaml") == pathlib.Path("results/hd2")
+    assert _cli.default_out("diagnose", "data/hd1") == pathlib.Path("results/hd1-diagnosis")
+    assert _cli.default_out("sensitivity", "configs/hd2.yaml") == pathlib.Path("results/hd2-sensitivity")
+    assert _cli.default_out("tune", "data/hd2/dataset.yaml") == pathlib.Path("results/hd2-tune")

@@ -522,6 +522,7 @@ def tune_gains(
     atol: float = 1e-6,
     max_gradient: float = 1.0,
     log=None,
+    progress=None,
 ) -> TuneResult:
     """Minimise `cost_fn(gains) -> scalar` from `start` with optimistix BFGS (backtracking Armijo
     line search) in the scaled coordinates of `scaling`; gradients by reverse-mode AD through the
@@ -532,7 +533,10 @@ def tune_gains(
     0.5 s horizon is huge and meaningless (central differences disagree with it and with each
     other); uncapped, BFGS's first trial step lands astronomically far and the line search spends
     its whole budget backtracking. Ordinary gradients here are O(1e-2), so the cap acts only then;
-    the Armijo line search still accepts only true decreases of the cost."""
+    the Armijo line search still accepts only true decreases of the cost.
+
+    `log(line)` gets one line per accepted cost; `progress(step, cost)` is called after every step
+    (a progress bar)."""
     import optimistix as optx
 
     solver = optx.BFGS(rtol=rtol, atol=atol)
@@ -548,6 +552,8 @@ def tune_gains(
     for n in range(1, max_steps + 1):
         theta, state, _ = step(theta, state)
         f = float(state.f_info.f)
+        if progress is not None:
+            progress(n, f)
         if not history or f != history[-1]:
             history.append(f)
             if log is not None:

@@ -2,6 +2,7 @@
 figures (residual order spectra before/after, torque traces before/after)."""
 
 import pathlib
+import re
 import time
 
 import matplotlib
@@ -11,6 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from ._config import section_options
 from ._data import Dataset
 from ._diagnose import covariate_drifts, diagnose
 from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PERIODIC, SCALAR
@@ -18,6 +20,91 @@ from ._experiment import stack_experiments
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._paper_id import identify_paper
 from ._plant import Simulator
+from ._progress import task
+
+
+DEFAULTS = {
+    "candidates": list(EFFECT_NAMES),  # SPEC §4 effects screened, one finding per round
+    "model_form": list(MODEL_FORM_NAMES),  # SPEC §4b base-model assumptions screened first
+    "base_steps": 5,  # LM steps refining the base model
+    "max_findings": 3,
+    "min_relative_gain": 0.03,  # held-out whitened-SSE reduction a finding needs
+    "rtol": 1e-6,  # ODE tolerance of every simulation
+    "per_record_noise": True,  # weigh every experiment by its own sensor-noise level
+    "misfit_scaling": True,  # scale each (experiment, channel) by its misfit where over the noise
+    "min_improved_fraction": 0.75,  # of the held-out experiments where a candidate acts
+}
+
+
+def _run_diagnose(paper, dataset, exps, opts, log):
+    return diagnose(
+        paper.parameters(), dataset.drive, exps,
+        candidates=opts["candidates"],
+        model_form=opts["model_form"],
+        per_record_noise=bool(opts["per_record_noise"]),
+        misfit_scaling=bool(opts["misfit_scaling"]),
+        min_improved_fraction=float(opts["min_improved_fraction"]),
+        base_steps=int(opts["base_steps"]),
+        max_findings=int(opts["max_findings"]),
+        min_relative_gain=float(opts["min_relative_gain"]),
+        simulator=Simulator(rtol=float(opts["rtol"]), atol=1e-8),
+        log=log,
+    )
+
+
+class DiagnosisProgress:
+    """Progress bars for `diagnose`, driven by its log lines (it takes only `log=`): one bar per
+    round over the candidates it scores (the round's Jacobian and refit run before the first
+    candidate line; the bar shows them as elapsed time at 0/n). Every line is passed on to `log`.
+
+    A line starting "diagnose: round N" opens round N; "  <name>  held-out gain" counts one
+    candidate; "  accepted <names>" records findings (an effect round's pool shrinks by one)."""
+
+    _CANDIDATE = re.compile(r"^  (\S+)\s+held-out gain")
+    _ROUND = re.compile(r"^diagnose: round (\d+):")
+
+    def __init__(self, log, opts: dict):
+        self.log = log
+        self.model_form = list(opts["model_form"])
+        self.effects = [c for c in opts["candidates"] if c != "presliding_friction"]
+        self.found = 0
+        self.form_round = False
+        self._task = None
+        self.n_rounds = int(opts["max_findings"]) + 1 + (1 if self.model_form else 0)
+
+    def __enter__(self):
+        return self
+
+    def __call__(self, line: str) -> None:
+        if self.log is not None:
+            self.log(line)
+        line = str(line)
+        m = self._ROUND.match(line)
+        if m:
+            self._close()
+            rnd = int(m.group(1))
+            self.form_round = rnd == 1 and bool(self.model_form)
+            pool = len(self.model_form) if self.form_round else max(len(self.effects) - self.found, 1)
+            what = "base-model assumptions" if self.form_round else "candidate effects"
+            self._task = task(self.log, f"round {rnd}/{self.n_rounds}: Jacobian, refit, {what}", pool, unit="candidates")
+            self._task.__enter__()
+            self._task.update(info="Jacobian and refit")
+            return
+        m = self._CANDIDATE.match(line)
+        if m and self._task is not None:
+            self._task.advance(1, info=m.group(1))
+            return
+        if line.startswith("  accepted ") and not self.form_round:
+            self.found += 1
+
+    def _close(self):
+        if self._task is not None:
+            self._task.__exit__(None, None, None)
+            self._task = None
+
+    def __exit__(self, *exc):
+        self._close()
+        return False
 
 
 def effects_to_dict(effects) -> dict:
@@ -36,12 +123,7 @@ def effects_to_dict(effects) -> dict:
 def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> dict:
     t_start = time.time()
     out = pathlib.Path(out)
-    opts = dict(config.get("diagnose", {}) or {})
-    known = {"candidates", "model_form", "base_steps", "max_findings", "min_relative_gain", "rtol",
-             "per_record_noise", "misfit_scaling", "min_improved_fraction"}
-    bad = sorted(set(opts) - known)
-    if bad:
-        raise ValueError(f"config `diagnose:` has unknown option(s) {bad}; known options: {sorted(known)}.")
+    opts = section_options(config, "diagnose", DEFAULTS)
     dyn = dataset.dynamic_indices()
     if dataset.drive is None or len(dyn) < 2:
         raise ValueError(
@@ -54,19 +136,8 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     log(f"[1/3] paper's identification on {len(exps)} experiments (start of the base model)")
     paper = identify_paper(exps, dataset.drive, alpha=fit_opts.get("alpha", 0.5), Tss2=fit_opts.get("Tss2", 0.1))
     log("[2/3] discrepancy loop (base fit, residual evidence, cross-validated candidates)")
-    d = diagnose(
-        paper.parameters(), dataset.drive, exps,
-        candidates=opts.get("candidates", EFFECT_NAMES),
-        model_form=opts.get("model_form", MODEL_FORM_NAMES),
-        per_record_noise=bool(opts.get("per_record_noise", True)),
-        misfit_scaling=bool(opts.get("misfit_scaling", True)),
-        min_improved_fraction=float(opts.get("min_improved_fraction", 0.75)),
-        base_steps=int(opts.get("base_steps", 5)),
-        max_findings=int(opts.get("max_findings", 3)),
-        min_relative_gain=float(opts.get("min_relative_gain", 0.03)),
-        simulator=Simulator(rtol=float(opts.get("rtol", 1e-6)), atol=1e-8),
-        log=log,
-    )
+    with DiagnosisProgress(log, opts) as watch:
+        d = _run_diagnose(paper, dataset, exps, opts, watch)
     drifts = covariate_drifts(paper.per_experiment, exps)
     d.evidence["per_experiment_drifts"] = drifts
     log("[3/3] report and figures")

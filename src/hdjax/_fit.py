@@ -21,6 +21,7 @@ error cannot dominate it; what remains (torsion and acceleration history) carrie
 """
 
 import dataclasses
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -34,6 +35,7 @@ from ._experiment import Experiment
 from ._model import PARAMETER_NAMES, Drive, Parameters
 from ._paper_id import _consistency
 from ._plant import Simulator, simulate
+from ._progress import count_progress, lm_progress
 from ._sharding import experiment_mesh, for_each_experiment, map_experiments, replicated, shard_experiments
 
 
@@ -257,6 +259,10 @@ class CostStop(optx.AbstractLeastSquaresSolver):
     step_se_tol: float = 0.1
     cost_rtol: float = 1e-5
     window: int = STALL_WINDOW
+    callback: Callable | None = eqx.field(default=None, static=True)
+    """Host function `(step, ½χ², Gauss–Newton step in standard errors)` called after every LM
+    step through `jax.debug.callback` (progress display, `hdjax._progress.lm_progress`); None
+    compiles nothing in."""
 
     @property
     def rtol(self):
@@ -283,6 +289,8 @@ class CostStop(optx.AbstractLeastSquaresSolver):
         stalled = check & _stalled(state.checkpoint, cost, self.cost_rtol)
         checkpoint = jnp.where(check, cost, state.checkpoint)
         reason = jnp.where(m < self.step_se_tol, 1, jnp.where(stalled, 2, 0))
+        if self.callback is not None:
+            jax.debug.callback(self.callback, inner.num_steps, cost, m)
         return y, _StopState(inner, checkpoint, reason), aux
 
     def terminate(self, fn, y, args, options, state, tags):
@@ -378,19 +386,21 @@ def fit_parameters(
         return r.reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
-    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)
+    n_exp = int(batch.time.shape[0])
+    with lm_progress(f"LM fit ({len(free)} parameters, {n_exp} experiments)", max_steps) as callback:
+        lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol, callback=callback)
 
-    # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which XLA
-    # would try to constant-fold)
-    @eqx.filter_jit
-    def run(theta0, args):
-        sol = optx.least_squares(residuals_lm, lm, theta0, args, max_steps=max_steps, throw=False)
-        r, J = _final_residual_and_jacobian(sol)
-        if mesh is not None:  # every process can read the result (multi-host)
-            r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
-        return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], r, J
+        # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which
+        # XLA would try to constant-fold)
+        @eqx.filter_jit
+        def run(theta0, args):
+            sol = optx.least_squares(residuals_lm, lm, theta0, args, max_steps=max_steps, throw=False)
+            r, J = _final_residual_and_jacobian(sol)
+            if mesh is not None:  # every process can read the result (multi-host)
+                r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
+            return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], r, J
 
-    theta, result, reason, steps, r, J = run(theta0, (p0, drive, batch, sigma))
+        theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (p0, drive, batch, sigma)))
     stop = str(_stop_reason(result, reason))
     theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
     n_obs = int(np.sum(r != 0.0))
@@ -502,18 +512,26 @@ def fit_per_experiment(
     residuals_lm = _lm_objective(residuals)
     lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)
 
-    @eqx.filter_jit
-    def run(z, theta0_, p0_, drive_, batch_, sigma_, idx, on):
-        def one(z_e, exp, idx_e, on_e):
-            args = (theta0_, p0_, drive_, exp, sigma_, idx_e, on_e)
-            sol = optx.least_squares(residuals_lm, lm, z_e, args, max_steps=max_steps, throw=False)
-            return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
+    def make_run(done):
+        @eqx.filter_jit
+        def run(z, theta0_, p0_, drive_, batch_, sigma_, idx, on):
+            def one(z_e, exp, idx_e, on_e):
+                args = (theta0_, p0_, drive_, exp, sigma_, idx_e, on_e)
+                sol = optx.least_squares(residuals_lm, lm, z_e, args, max_steps=max_steps, throw=False)
+                if done is not None:  # after this experiment's fit (its result is the argument)
+                    jax.debug.callback(done, sol.stats["num_steps"])
+                return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
 
-        return for_each_experiment(one, z, batch_, idx, on)
+            return for_each_experiment(one, z, batch_, idx, on)
+
+        return run
 
     active = mask.any(axis=1)
     idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
-    z_final, result, reason, steps, r = run(jnp.zeros((n_exp, n_slots)), theta0, p0, drive, batch, sigma, idx, on)
+    with count_progress("per-experiment LM fits", n_exp, unit="experiments") as done:
+        z_final, result, reason, steps, r = jax.block_until_ready(
+            make_run(done)(jnp.zeros((n_exp, n_slots)), theta0, p0, drive, batch, sigma, idx, on)
+        )
     z_final, r, steps = np.asarray(z_final), np.asarray(r), np.asarray(steps)
     ok = (_stop_reason(result, reason) != "max_steps") & active
     rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)

@@ -15,6 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from ._config import section_options
 from ._data import Dataset
 from ._experiment import stack_experiments
 from ._fit import DEFAULT_FREE, fit_per_experiment, fit_parameters, nrmse
@@ -44,12 +45,8 @@ DEFAULTS = {
 
 
 def _options(config: dict) -> dict:
-    fit = dict(config.get("fit", {}) or {})
-    opts = {k: fit.get(k, v) for k, v in DEFAULTS.items() if k != "trajectory"}
-    traj = dict(DEFAULTS["trajectory"])
-    traj.update(fit.get("trajectory", {}) or {})
-    opts["trajectory"] = traj
-    return opts
+    """The `fit:` section of `config` completed by `DEFAULTS`; an unknown key is an error."""
+    return section_options(config, "fit", DEFAULTS, nested=("trajectory",))
 
 
 def _select(dataset: Dataset, idx: list[int], max_n: int) -> list[int]:

@@ -36,6 +36,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.colors import LogNorm
 
+from ._config import section_options
 from ._data import Dataset
 from ._experiment import Experiment, stack_experiments
 from ._fit import CHANNELS, DEFAULT_FREE, noise_levels
@@ -278,12 +279,7 @@ def _sub_fisher(F, names, sub):
 
 
 def _options(config: dict) -> dict:
-    opts = dict(DEFAULTS)
-    opts.update((config or {}).get("sensitivity", {}) or {})
-    unknown = sorted(set(opts) - set(DEFAULTS))
-    if unknown:
-        raise ValueError(f"config `sensitivity`: unknown option(s) {unknown}; known are {sorted(DEFAULTS)}.")
-    return opts
+    return section_options(config, "sensitivity", DEFAULTS)
 
 
 def workflow_simulator(opts: dict) -> Simulator:

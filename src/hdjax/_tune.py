@@ -53,6 +53,8 @@ from ._control import (
     tune_gains,
     ziegler_nichols_pi,
 )
+from ._config import section_options
+from ._progress import task
 from ._data import Dataset
 from ._effects import MODEL_FORM, PERIODIC, SCALAR, Effects
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
@@ -82,12 +84,7 @@ REFERENCE_NAMES = ("locked_step", "locked_sine", "free_step", "free_sine")
 
 
 def _options(config: dict) -> dict:
-    opts = dict(config.get("tune", {}) or {})
-    bad = sorted(set(opts) - set(DEFAULTS))
-    if bad:
-        raise ValueError(f"config `tune:` has unknown option(s) {bad}; known options: {sorted(DEFAULTS)}.")
-    out = dict(DEFAULTS)
-    out.update(opts)
+    out = section_options(config, "tune", DEFAULTS)
     for k in ("duration", "locked_fraction", "free_fraction", "locked_sine_hz", "free_sine_hz", "relay_amplitude"):
         if not isinstance(out[k], (int, float)) or out[k] <= 0:
             raise ValueError(f"config `tune.{k}` must be a positive number, got {out[k]!r}.")
@@ -311,18 +308,24 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     # its kp, ki scaled down on a grid. BFGS from the aggressive baseline alone stalls: there the
     # free-output loop is nearly chaotic and the gradient is huge and meaningless (see tune_gains).
     cost_jit = jax.jit(cost_fn)
-    search = [{"gains": baseline.to_dict(), "cost": float(cost_jit(baseline))}]
-    for fp in opts["start_factors"]:
-        for fi in opts["start_factors"]:
-            g = TorqueGains(kp=fp * baseline.kp, ki=fi * baseline.ki, kr=1.0, kf=1.0, kj=1.0)
-            search.append({"gains": g.to_dict(), "cost": float(cost_jit(g))})
+    n_search = 1 + len(opts["start_factors"]) ** 2
+    with task(log, "start search (baseline and kp, ki grid)", n_search, unit="candidates") as bar:
+        search = [{"gains": baseline.to_dict(), "cost": float(cost_jit(baseline))}]
+        bar.advance(1, info=f"baseline {search[0]['cost']:.5g}")
+        for fp in opts["start_factors"]:
+            for fi in opts["start_factors"]:
+                g = TorqueGains(kp=fp * baseline.kp, ki=fi * baseline.ki, kr=1.0, kf=1.0, kj=1.0)
+                search.append({"gains": g.to_dict(), "cost": float(cost_jit(g))})
+                bar.advance(1, info=f"kp x{fp:g}, ki x{fi:g}: {search[-1]['cost']:.5g}")
     costs_found = [c["cost"] for c in search]
     best = int(np.nanargmin(np.where(np.isfinite(costs_found), costs_found, np.nan)))
     start = TorqueGains(**search[best]["gains"])
     log(f"      start search: baseline {search[0]['cost']:.5g}, best of {len(search)} candidates {search[best]['cost']:.5g} "
         f"(kp x{float(start.kp / baseline.kp):.3g}, ki x{float(start.ki / baseline.ki):.3g}, feed-forward {'on' if best else 'off'})")  # fmt: skip
     t_search = time.time() - t0
-    res = tune_gains(start, cost_fn, scaling=scaling, max_steps=int(opts["max_steps"]), log=log)
+    with task(log, "BFGS on the robust tracking cost", int(opts["max_steps"]), unit="iterations") as bar:
+        res = tune_gains(start, cost_fn, scaling=scaling, max_steps=int(opts["max_steps"]), log=log,
+                         progress=lambda n, f: bar.advance(1, info=f"cost {f:.5g}"))
     t_opt = time.time() - t0
     tuned = res.gains
     if not res.converged:

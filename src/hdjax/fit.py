@@ -1,20 +1,13 @@
-"""`python -m hdjax.fit TARGET [--out DIR]`: the paper's identification, then the joint
-trajectory-error fit; writes fit.json, report.md and figures (SPEC §3)."""
+"""`python -m hdjax.fit TARGET [--out DIR] [--quiet]` (the same as `hdjax fit`): the paper's
+identification, then the joint trajectory-error fit; writes fit.json, report.md, report.html,
+run.log and figures (SPEC §3). Friction-only datasets get the eq. 9 fit."""
 
 import sys
 
-from ._cli import main_wrapper
+from ._cli import command_main
 
 
-def _run(dataset, config, out):
-    from ._friction_cli import is_friction_only, run_fit as run_friction_fit
-
-    if is_friction_only(dataset):
-        return run_friction_fit(dataset, config, out)
-    from ._identify import run_fit
-
-    run_fit(dataset, config, out)
-
+main = command_main("fit")
 
 if __name__ == "__main__":
-    sys.exit(main_wrapper("hdjax.fit", __doc__, _run))
+    sys.exit(main())
