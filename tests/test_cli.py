@@ -52,7 +52,8 @@ def test_help_lists_commands_and_every_option_with_its_default(capsys):
     for line in ("fit.alpha = 0.5", "fit.Tss2 = 0.1", "fit.trajectory.max_steps = 20", "fit.trajectory.rtol = 1e-05"):
         assert line in fit, line
     sens = _help(capsys, ["sensitivity", "--help"])
-    assert "--fit FIT_JSON" in sens and "sensitivity.rtol = 0.0001" in sens and "results/<TARGET name>-sensitivity" in sens
+    assert "--fit FIT_JSON" in sens and "sensitivity.rtol = 0.0001" in sens
+    assert "results/<TARGET name>-sensitivity" in sens
     tune = _help(capsys, ["tune", "--help"])
     assert "tune.plants = 6" in tune and "--fit FIT_JSON" in tune
     diag = _help(capsys, ["diagnose", "--help"])
@@ -64,7 +65,8 @@ def test_module_mains_are_the_same_command():
 
     for mod in (fit, diagnose, sensitivity, tune):
         assert callable(mod.main)
-    r = subprocess.run([sys.executable, "-m", "hdjax.sensitivity", "--help"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "hdjax.sensitivity", "--help"], capture_output=True, text=True,
+                       timeout=120)
     assert r.returncode == 0 and "usage: hdjax sensitivity" in r.stdout and "--fit FIT_JSON" in r.stdout
     assert "sensitivity.max_experiments = 50" in r.stdout
 
@@ -73,8 +75,8 @@ def test_unknown_key_names_the_nearest_valid_one():
     with pytest.raises(ConfigError, match=r"\['plantz'\] \(`plantz`: did you mean `plants`\?\)"):
         check_keys({"plantz": 1}, ["plants", "seed"], "config `tune:`")
     with pytest.raises(ConfigError, match=r"`fit.trajectory:`.*`max_step`: did you mean `max_steps`"):
-        section_options({"fit": {"trajectory": {"max_step": 3}}}, "fit", {"alpha": 0.5, "trajectory": {"max_steps": 20}},
-                        nested=("trajectory",))
+        section_options({"fit": {"trajectory": {"max_step": 3}}}, "fit",
+                        {"alpha": 0.5, "trajectory": {"max_steps": 20}}, nested=("trajectory",))
     opts = section_options({"fit": {"alpha": 0.4}}, "fit", {"alpha": 0.5, "trajectory": {"max_steps": 20}},
                            nested=("trajectory",))
     assert opts == {"alpha": 0.4, "trajectory": {"max_steps": 20}}

@@ -25,7 +25,7 @@ def _chromium() -> str | None:
             return path
     if os.environ.get("CI"):
         pytest.fail("headless Chromium is required in CI (.ci/run installs the Debian package `chromium`)")
-    pytest.skip("no chromium on this machine (install the Debian package `chromium`); CI installs it and runs this test")
+    pytest.skip("no chromium on this machine (install the Debian package `chromium`); CI installs it and runs it")
 
 
 def screenshot(html: pathlib.Path, png: pathlib.Path, *, width: int = 1000, height: int = 1400) -> np.ndarray:

@@ -228,7 +228,8 @@ def lm_progress(description: str, max_steps: int, log=None):
     with target.task(description, max_steps, unit="LM steps") as t:
         def callback(step, cost, gn_step):
             t.advance(1, info=f"½χ² {float(cost):.6g}, Gauss–Newton step {float(gn_step):.2g} SE",
-                      line=f"        LM step {int(step)}: ½χ² {float(cost):.8g}, Gauss–Newton step {float(gn_step):.3g} SE")
+                      line=f"        LM step {int(step)}: ½χ² {float(cost):.8g}, "
+                           f"Gauss–Newton step {float(gn_step):.3g} SE")
 
         yield callback
 
