@@ -372,6 +372,7 @@ def _periodic(spec, theta):
     return np.sum(spec["w"][:, None] * np.sin(ang), 0), np.sum((spec["w"] * spec["k"])[:, None] * np.cos(ang), 0)
 
 
+TH = 0.5  # trapezoidal weight of the spring, viscous friction and positions (power-law damping: see below)
 LOOP_RATE = 20000.0  # Hz, current-loop (PWM) update rate; the integrator's rate is a multiple of it
 
 
@@ -401,11 +402,15 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
     iJl = np.where(free, 1.0 / st.load_inertia, 0.0)
     on = {k: bool(np.any(v != 0)) for k, v in mags.items()}
     m = {k: np.asarray(v, float) for k, v in mags.items()}
-    lug = m["presliding_friction"] > 0 if low_speed == "stick_slip" else np.ones(B, bool)
+    # LuGre records (low_speed="lugre": presliding_friction widens the bristle), and elasto-plastic
+    # presliding on top of stick–slip (presliding_friction with low_speed="stick_slip")
+    lug = np.full(B, low_speed == "lugre")
     any_lug = bool(np.any(lug))
-    delta = np.where(lug, m["presliding_friction"] + (2e-4 if low_speed == "lugre" else 0.0), 1.0)
-    sig0 = 0.5 * (brk["p"] + brk["n"]) / delta  # bristle stiffness (N·m/rad)
-    sig1 = 0.5 * np.sqrt(sig0 * Jeff)  # bristle damping (N·m·s/rad)
+    pre = ~lug & (m["presliding_friction"] > 0)
+    any_pre = bool(np.any(pre))
+    delta = np.where(lug, m["presliding_friction"] + 2e-4, np.where(pre, m["presliding_friction"], 1.0))
+    sig0 = 0.5 * (brk["p"] + brk["n"]) / delta  # bristle stiffness (N·m/rad, motor side)
+    sig1 = np.sqrt(sig0 * Jeff)  # bristle damping (N·m·s/rad), damping ratio ½ on the motor inertia
     wb = 0.1 * Tss2  # velocity scale of the stiction bump in the LuGre g(ω)
     tf = None  # thermal drift: viscous multiplier, a function of time only
     if on["thermal_drift"]:
@@ -429,17 +434,13 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
     # candidate rows: 0 slide +, 1 slide −, 2 stuck, (3 LuGre)
     nr = 4 if any_lug else 3
     invA = np.zeros((nr, B))
-    invA[0], invA[1] = 1.0 / (Jh + p["Tvp"]), 1.0 / (Jh + p["Tvn"])
+    invA[0], invA[1] = 1.0 / (Jh + TH * p["Tvp"]), 1.0 / (Jh + TH * p["Tvn"])
+    invA[2] = np.where(pre, 1.0 / (Jh + sig0 * h + sig1), 0.0)  # stuck, or presliding on the bristle
     F0 = np.zeros((nr, B))
-    M = iN * iN * invA + h * iJl
-    aK = 1.0 + M * K1 * h
-    bT = M * Tst
-    const_a = not (on["lost_motion"] or on["nonlinear_stiffness"])
-    const_M = not (on["kinematic_error"] or on["thermal_drift"] or any_lug)
-    rows = np.arange(nr)[:, None]
 
     thm, wm, tho, wo = (np.zeros(B) for _ in range(4))
-    ia, integ, volt, zd, zl, Tprev, idel, Fprev = (np.zeros(B) for _ in range(8))
+    ia, integ, volt, zd, zl, Tprev, idel, Fprev, zp_, rprev = (np.zeros(B) for _ in range(10))
+    stk = np.ones(B, bool)  # stuck (or presliding): starts at rest
     H = {k: np.empty((ns + 1, B)) for k in ("T", "wm", "thm", "tho", "ia")}
     for k in H:
         H[k][0] = 0.0
@@ -495,8 +496,10 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
         fp = np.maximum(p["Tsp"] * cmod + p["Tssp1"] * ex + load, 0.0)
         fn = np.maximum(p["Tsn"] * cmod + p["Tssn1"] * ex + load, 0.0)
         F0[0], F0[1] = fp, -fn
+        if any_pre:
+            F0[2] = np.where(pre, sig0 * zp_, 0.0)
         if on["thermal_drift"]:
-            invA[0], invA[1] = 1.0 / (Jh + p["Tvp"] * tf[n]), 1.0 / (Jh + p["Tvn"] * tf[n])
+            invA[0], invA[1] = 1.0 / (Jh + TH * p["Tvp"] * tf[n]), 1.0 / (Jh + TH * p["Tvn"] * tf[n])
         if any_lug:  # LuGre bristle state zl (motor side): exponential update, linearised implicit force
             sgn = np.sign(wm)
             dl_ = np.where(sgn != 0, sgn, np.where(zl >= 0, 1.0, -1.0))
@@ -510,52 +513,63 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
             cz = h * E
             F0[3] = sig0 * (zp - cz * wm) + sig1 * ex * (zp - zl) / h
             tv = np.where(dl_ > 0, p["Tvp"], p["Tvn"]) * (1.0 if tf is None else tf[n])
-            invA[3] = 1.0 / (Jh + tv + sig0 * cz)
-        if not const_M:
+            invA[3] = 1.0 / (Jh + TH * tv + sig0 * cz)
+        # viscous friction by the trapezoidal rule: its old-speed half goes with the explicit part
+        tvf = 1.0 if tf is None else tf[n]
+        F0[0] += (1.0 - TH) * p["Tvp"] * tvf * wm
+        F0[1] += (1.0 - TH) * p["Tvn"] * tvf * wm
+        if any_lug:
+            F0[3] += (1.0 - TH) * tv * wm
+        C = TH * Tk + (TH * (1.0 - TH) * h) * Kt * rprev + (1.0 - TH) * Tprev
+
+        def cands(F0, invA):
+            """New motor velocity W, output velocity V, end torque T, rate r for friction F0, 1/A."""
+            W0 = (Jh * wm + tau - F0) * invA
             M = rho * iN * invA + h * iJl
-            bT = M * Tst
-        if not (const_a and const_M):
-            aK = 1.0 + M * (Kt * h)
-        # --- the candidates: new torsion rate r, torque T, motor velocity w
-        W0 = (Jh * wm + tau - F0) * invA
-        r = _solve_pow(aK, bT, rho * W0 - wo - M * Tk)
-        T = Tk + (Kt * h) * r + Tst * np.copysign(np.sqrt(np.abs(r)), r)
-        W = W0 - T * iN * invA
+            r = _solve_pow(1.0 + M * (TH * TH * h) * Kt, M * (TH * Tst), rho * W0 - wo - M * C)
+            phi = Tst * np.copysign(np.sqrt(np.abs(r)), r)
+            Teff = C + (TH * TH * h) * Kt * r + TH * phi  # torque over the step: θ·T_{n+1} + (1−θ)·T_n
+            return W0 - Teff * iN * invA, wo + h * iJl * Teff, Tk + (h * Kt) * (TH * r + (1.0 - TH) * rprev) + phi, r
+
+        W, V, T, R_ = cands(F0, invA)
         # friction that holds the motor once stopped (a moving motor's momentum is taken by the
-        # kinetic friction that stops it within the step)
+        # kinetic friction that stops it within the step); presliding: the bristle's force
         Freq = tau - T[2] * iN
+        if any_pre:
+            Freq = np.where(pre, sig0 * (zp_ + h * W[2]) + sig1 * W[2], Freq)
         stick = (Freq <= brk["p"] * cmod + load) & (Freq >= -(brk["n"] * cmod + load))
         kn = np.where(Freq > 0, 0, 1)
-        stick = stick | ((wm > 0) & (kn == 0)) | ((wm < 0) & (kn == 1))  # stopped, no slip back
-        k = np.where((wm > 0) & (W[0] > 0), 0, np.where((wm < 0) & (W[1] < 0), 1, np.where(stick, 2, kn)))
-        w_new = W[k, cols]
-        T_new = T[k, cols]
+        mp, mn = ~stk & (wm > 0), ~stk & (wm < 0)
+        stick = stick | (mp & (kn == 0)) | (mn & (kn == 1))  # stopped, no slip back
+        k = np.where(mp & (W[0] > 0), 0, np.where(mn & (W[1] < 0), 1, np.where(stick, 2, kn)))
+        w_new, v_new, T_new, r_new = W[k, cols], V[k, cols], T[k, cols], R_[k, cols]
         # events inside the step, located to O(h²): a reversal straight through zero speed (friction
         # flips part-way) and a breakaway from sticking (slides only after the holding torque crosses)
-        rev = ((wm > 0) & (k == 1)) | ((wm < 0) & (k == 0))
-        if np.any(rev):
+        rev = (mp & (k == 1)) | (mn & (k == 0))
+        if rev.any():
             ko = np.where(wm > 0, 0, 1)
             th = np.clip(wm / (wm - W[ko, cols]), 0.0, 1.0)
             f0p = max(p["Tsp"] + p["Tssp1"], 0.0) * cmod + load
             f0n = max(p["Tsn"] + p["Tssn1"], 0.0) * cmod + load
-            Fo = F0[ko, cols]
-            Fe = th * Fo + (1.0 - th) * np.where(k == 0, f0p, -f0n)
-            iA, Mk = invA[k, cols], M[k, cols] if M.ndim == 2 else M
-            W0r = (Jh * wm + tau - Fe) * iA
-            rr = _solve_pow(1.0 + Mk * Kt * h, Mk * Tst, rho * W0r - wo - Mk * Tk)
-            Tr = Tk + (Kt * h) * rr + Tst * np.copysign(np.sqrt(np.abs(rr)), rr)
-            w_new, T_new = np.where(rev, W0r - Tr * iN * iA, w_new), np.where(rev, Tr, T_new)
-        brk_ev = (wm == 0.0) & (k != 2)
-        if np.any(brk_ev):
+            visc = F0[k, cols] - np.where(k == 0, fp, -fn)
+            Fe = th * F0[ko, cols] + (1.0 - th) * (np.where(k == 0, f0p, -f0n) + visc)
+            out = cands(Fe, invA[k, cols])
+            w_new, v_new, T_new, r_new = (np.where(rev, x, y) for x, y in zip(out, (w_new, v_new, T_new, r_new)))
+        brk_ev = stk & (k != 2)
+        if brk_ev.any():
             bth = np.where(Freq > 0, brk["p"] * cmod + load, -(brk["n"] * cmod + load))
             th = np.clip((bth - Fprev) / np.where(Freq != Fprev, Freq - Fprev, 1.0), 0.0, 1.0)
             w_new = np.where(brk_ev, (1.0 - th) * w_new, w_new)
+            v_new = np.where(brk_ev, th * V[2] + (1.0 - th) * v_new, v_new)
             T_new = np.where(brk_ev, th * T[2] + (1.0 - th) * T_new, T_new)
+            r_new = np.where(brk_ev, th * R_[2] + (1.0 - th) * r_new, r_new)
         Fprev = Freq
+        stk = k == 2
+        if any_pre:  # bristle: deflects while stuck, fully loaded (kinetic level) while sliding
+            zp_ = np.where(stk, zp_ + h * w_new, np.where(w_new > 0, fp, np.where(w_new < 0, -fn, 0.0)) / sig0)
         if any_lug:
-            w_new, T_new = np.where(lug, W[3], w_new), np.where(lug, T[3], T_new)
-        v_new = wo + h * iJl * T_new
-        if any_lug:
+            w_new, v_new, T_new, r_new = (np.where(lug, x[3], y) for x, y in zip((W, V, T, R_),
+                                                                                 (w_new, v_new, T_new, r_new)))
             s2 = np.sign(w_new)
             zss2 = s2 * g / sig0
             zl = np.where(lug, zss2 + (zl - zss2) * np.exp(-sig0 * np.abs(w_new) * h / g), 0.0)
@@ -563,9 +577,9 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
             rr = rho * w_new - v_new
             s = np.sign(rr)
             zd = s + (zd - s) * np.exp(-np.abs(rr) * h / hyst_sigma)
-        thm = thm + h * w_new
-        tho = tho + h * v_new
-        wm, wo, Tprev = w_new, v_new, T_new
+        thm = thm + h * (TH * w_new + (1.0 - TH) * wm)
+        tho = tho + h * (TH * v_new + (1.0 - TH) * wo)
+        wm, wo, Tprev, rprev = w_new, v_new, T_new, r_new
         H["T"][n + 1], H["wm"][n + 1], H["thm"][n + 1], H["tho"][n + 1] = T_new, wm, thm, tho
     return H
 
@@ -616,14 +630,15 @@ def _sense(bench, H, times, dev, fine_rate, mags, specs):
     if dev.pwm_ripple:
         ph = (real["pwm_frequency_hz"] * times + real["pwm_phase"]) % 1.0
         ia = ia + dev.pwm_ripple * sens["current_noise"] * (4.0 * np.abs(ph - 0.5) - 1.0)
+    mt = times
     return {
-        "torque": _at(_lowpass(T, real["torque_filter_hz"], fine_rate), times, fine_rate),
-        "motor_velocity": _at(_lowpass(tach, real["tacho_filter_hz"], fine_rate), times, fine_rate),
-        "output_position": _at(H["tho"], times, fine_rate),
+        "torque": _at(_lowpass(T, real["torque_filter_hz"], fine_rate), mt, fine_rate),
+        "motor_velocity": _at(_lowpass(tach, real["tacho_filter_hz"], fine_rate), mt, fine_rate),
+        "output_position": _at(H["tho"], mt, fine_rate),
         "current": ia,
-        "true_torque": _at(H["T"], times, fine_rate),
-        "true_motor_velocity": _at(H["wm"], times, fine_rate),
-        "true_motor_position": _at(H["thm"], times, fine_rate),
+        "true_torque": _at(H["T"], mt, fine_rate),
+        "true_motor_velocity": _at(H["wm"], mt, fine_rate),
+        "true_motor_position": _at(H["thm"], mt, fine_rate),
     }
 
 
@@ -799,6 +814,7 @@ def simulate_dataset(
         clock += duration + rng.uniform(30.0, 150.0)
     specs, targets, fixed = _effect_specs(effects or {}, bench, seed)
     times = _sample_times(seed, dev, K, B, sample_rate)
+    _pilot_locked(bench, profs, icmd, fr, dev, specs)
 
     def run(variants):
         """Simulate the records once per variant (dict name → magnitude); clean channels per variant."""
@@ -859,6 +875,30 @@ def simulate_dataset(
         records.append(r)
     truth = _truth(bench, dev, seed, drive, noise, low_speed, fr, final, calib, specs, records)
     return records, truth
+
+
+def _pilot_locked(bench, profs, icmd, fine_rate, dev, specs):
+    """The operator's trial runs: the large locked tests are simulated twice (2 kHz, ideal current)
+    and their currents rescaled, in place, so that the peak torque meets `target_peak_torque`
+    (T ≈ N·(Km·i − Ts), so the scale acts on the torque plus the friction's share)."""
+    big = [j for j, pr in enumerate(profs) if pr["regime"] == "locked"]
+    if not big:
+        return
+    st, p = bench["station"], bench["params"]
+    step = max(1, int(round(fine_rate / 2000.0)))
+    zero = {e: np.zeros(len(big)) for e in EFFECTS}
+    for _ in range(2):
+        H = _integrate(bench, icmd[::step, big], np.zeros(len(big), bool), np.zeros(len(big)), zero, specs,
+                       dataclasses.replace(dev, current_loop=False), fine_rate / step, "stick_slip")  # fmt: skip
+        fric = st.gear_ratio * 0.5 * (p["Tsp"] + p["Tsn"])
+        for c, j in enumerate(big):
+            peak = float(np.max(np.abs(H["T"][:, c])))
+            target = profs[j]["info"]["target_peak_torque"]
+            scale = min((target + fric) / (peak + fric), 3.0)
+            icmd[:, j] *= scale
+            profs[j]["current"] = icmd[:, j]
+            profs[j]["info"]["pilot_scale"] = profs[j]["info"].get("pilot_scale", 1.0) * scale
+            profs[j]["info"]["peak_current"] = float(np.max(np.abs(icmd[:, j])))
 
 
 def _plain(x):

@@ -1,0 +1,173 @@
+"""The independent virtual test bench (`hdjax._bench`): physics, deviations, snr calibration, output."""
+
+import ast
+import dataclasses
+import pathlib
+import warnings
+
+import numpy as np
+import pytest
+import yaml
+
+from hdjax import _bench
+from hdjax._data import load_dataset
+
+
+SRC = pathlib.Path(_bench.__file__)
+TINY = {"n_locked": 2, "n_free": 2, "duration": 0.6}
+
+
+def _sigma(truth, ch):
+    s = truth["sensors"]
+    return {"torque": s["torque_noise"], "motor_velocity": s["tacho_noise"], "current": s["current_noise"],
+            "output_position": s["encoder_step"] / np.sqrt(12.0)}[ch]  # fmt: skip
+
+
+def test_imports_nothing_from_hdjax_or_jax():
+    tree = ast.parse(SRC.read_text())
+    names = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            assert node.level == 0, f"relative import `from {'.' * node.level}{node.module or ''}` in _bench.py"
+            names.append(node.module)
+    assert names, "no imports found"
+    for n in names:
+        root = n.split(".")[0]
+        assert root not in {"hdjax", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax"}, n
+
+
+def test_step_halving_changes_data_far_below_noise():
+    kw = dict(n_locked=3, n_free=3, duration=1.0, noise="none", seed=3)
+    a, truth = _bench.simulate_dataset(fine_rate=20000.0, **kw)
+    b, _ = _bench.simulate_dataset(fine_rate=40000.0, **kw)
+    for ch in ("torque", "motor_velocity"):
+        d = np.concatenate([x["clean"][ch] - y["clean"][ch] for x, y in zip(a, b)]) / _sigma(truth, ch)
+        rms, peak = float(np.sqrt(np.mean(d * d))), float(np.max(np.abs(d)))
+        assert rms < 0.1, (ch, rms)
+        assert peak < 1.0, (ch, peak)  # single samples at slip events and reversals
+
+
+def test_motor_sticks_exactly_in_a_small_locked_test():
+    recs, truth = _bench.simulate_dataset(n_locked=3, n_free=0, duration=2.0, seed=1)
+    small = [r for r in recs if r["regime"] == "locked_stick"]
+    assert small
+    w = small[0]["clean"]["true_motor_velocity"]
+    stuck = w == 0.0
+    # at least one stick phase of 50 ms or more, and slipping elsewhere
+    runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[0], stuck.astype(int), [0]]))))[::2]
+    assert runs.max() >= 50, runs
+    assert np.mean(stuck) < 0.98 and np.max(np.abs(w)) > 0.02
+    # the holding torque stays inside the breakaway band while stuck: |N(Km i) - T| / N <= breakaway
+    c = small[0]["clean"]
+    N, Km = truth["drive"]["gear_ratio"], truth["drive"]["torque_constant"]
+    held = Km * c["current"][stuck] - c["true_torque"][stuck] / N
+    brk = truth["low_speed"]["breakaway_torque"]
+    assert np.all(held <= 1.05 * brk["p"] + 0.002) and np.all(held >= -1.05 * brk["n"] - 0.002)
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"drive_spread": 0.0},
+        {"stiction": None},
+        {"current_loop": False},
+        {"pwm_ripple": 0.0},
+        {"sensor_dynamics": False},
+        {"tacho_ripple": 0.0},
+        {"quantisation": False},
+        {"offsets": None},
+        {"jitter": 0.0},
+    ],
+)
+def test_each_deviation_switch_changes_the_data(change, base=[]):
+    kw = dict(n_locked=1, n_free=1, duration=0.5, seed=5)
+    if not base:
+        base.append(_bench.simulate_dataset(**kw)[0])
+    recs, truth = _bench.simulate_dataset(deviations=_bench.Deviations(**change), **kw)
+    cols = ("time", "current", "motor_velocity", "torque", "output_position")
+    differs = [c for r0, r1 in zip(base[0], recs) for c in cols if c in r0 and not np.array_equal(r0[c], r1[c])]
+    assert differs, change
+    assert truth["deviations"][next(iter(change))] == (list(change.values())[0])
+
+
+def test_all_deviations_off_leaves_the_papers_model_plus_white_noise():
+    recs, truth = _bench.simulate_dataset(deviations=_bench.Deviations.none(), seed=2, **TINY)
+    for r in recs:
+        assert np.allclose(np.diff(r["time"]), 1e-3, rtol=0, atol=1e-12)
+        assert np.allclose(r["clean"]["current"], r["clean"]["commanded_current"], atol=1e-9)
+        assert np.array_equal(r["clean"]["torque"], r["clean"]["true_torque"])
+    assert truth["parameters"] == {k: v for k, v in truth["nominal_parameters"].items()}
+
+
+@pytest.mark.parametrize("effect", ["kinematic_error", "thermal_drift", "input_delay"])
+def test_calibrated_snr_is_met(effect):
+    kw = dict(n_locked=2, n_free=2, duration=0.8, seed=4, noise="none")
+    _, truth = _bench.simulate_dataset(effects={effect: {"snr": 3.0}}, **kw)
+    e = truth["effects"][effect]
+    assert e["magnitude"] > 0 and abs(e["snr"] / 3.0 - 1) < 0.05
+    # check independently: simulate with the recorded physical magnitude and without the effect
+    with_e, _ = _bench.simulate_dataset(effects={effect: {"magnitude": e["magnitude"], **(
+        {"orders": e["orders"], "phases": e["phases"]} if "orders" in e else {}),
+        **({"tau": e["tau"]} if "tau" in e else {})}}, **kw)  # fmt: skip
+    without, _ = _bench.simulate_dataset(**kw)
+    best = 0.0
+    for ch in ("torque", "motor_velocity", "output_position"):
+        x = np.array([np.sqrt(np.mean((a["clean"][ch] - b["clean"][ch]) ** 2)) for a, b in zip(with_e, without)
+                      if ch != "output_position" or a["mode"] == "free"]) / _sigma(truth, ch)  # fmt: skip
+        acts = x >= 0.1 * x.max()
+        best = max(best, float(np.sqrt(np.mean(x[acts] ** 2))))
+    assert best == pytest.approx(3.0, rel=0.15)
+
+
+def test_folder_loads_with_hdjax_load_dataset(tmp_path):
+    truth = _bench.make_dataset(tmp_path / "ds", drive="hd2", seed=6, effects={"cogging": {"snr": 3.0}}, **TINY)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds = load_dataset(tmp_path / "ds")
+    assert len(ds.experiments) == 4 and ds.modes == ["constrained"] * 2 + ["free"] * 2
+    assert float(ds.drive.gear_ratio) == 160.0 and float(ds.drive.load_inertia) == 0.5
+    assert len(set(ds.start_times)) == 4 and min(ds.start_times) > 0
+    for exp, mode in zip(ds.experiments, ds.modes):
+        t = np.asarray(exp.time)[np.asarray(exp.mask)]
+        dt = np.diff(t)
+        assert np.max(np.abs(dt / np.median(dt) - 1)) < 0.01 and np.std(dt) > 0  # jittered, inside the SPEC
+    header = (tmp_path / "ds" / truth["experiments"][3]["file"]).read_text().splitlines()[0]
+    assert header == "time,current,motor_velocity,torque,output_position"
+    t = yaml.safe_load((tmp_path / "ds" / "truth.yaml").read_text())
+    assert set(t["parameters"]) == {"alpha", "K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2"}
+    assert "independent" in t["generator"] and t["seed"] == 6
+    assert t["effects"]["cogging"]["orders"] == [6] and t["effects"]["cogging"]["snr"] > 0
+    assert not list((tmp_path / "ds").glob("*.tmp"))
+
+
+def test_same_seed_same_bytes(tmp_path):
+    kw = dict(seed=11, effects={"torque_sensor_ripple": {"snr": 2.0}}, noise="per_record", **TINY)
+    _bench.make_dataset(tmp_path / "a", **kw)
+    _bench.make_dataset(tmp_path / "b", **kw)
+    files = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert files == sorted(p.name for p in (tmp_path / "b").iterdir()) and len(files) == 6
+    for f in files:
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
+    _bench.make_dataset(tmp_path / "c", **{**kw, "seed": 12})
+    assert (tmp_path / "c" / "truth.yaml").read_bytes() != (tmp_path / "a" / "truth.yaml").read_bytes()
+
+
+def test_lugre_and_per_record_noise_run():
+    recs, truth = _bench.simulate_dataset(low_speed="lugre", noise="per_record", seed=8, **TINY)
+    assert truth["low_speed"]["law"] == "lugre"
+    for r in recs:
+        assert all(np.all(np.isfinite(r[c])) for c in ("current", "motor_velocity", "torque"))
+    assert len({r["noise"]["torque"] for r in recs}) > 1  # scaled per record (floored at 0.1 x the sensor's)
+
+
+def test_bad_arguments_are_refused():
+    with pytest.raises(ValueError, match="unknown effect"):
+        _bench.simulate_dataset(effects={"backlash": {"snr": 2}}, **TINY)
+    with pytest.raises(ValueError, match="orders"):
+        _bench.simulate_dataset(effects={"cogging": {"orders": [0]}}, **TINY)
+    with pytest.raises(ValueError, match="drive"):
+        _bench.simulate_dataset(drive="hd3", **TINY)
+    with pytest.raises(ValueError, match="jitter"):
+        _bench.simulate_dataset(deviations=dataclasses.replace(_bench.Deviations(), jitter=0.02), **TINY)
