@@ -12,7 +12,6 @@ import yaml
 from hdjax import _bench
 from hdjax._data import load_dataset
 
-
 SRC = pathlib.Path(_bench.__file__)
 TINY = {"n_locked": 2, "n_free": 2, "duration": 0.6}
 

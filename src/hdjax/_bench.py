@@ -6,13 +6,26 @@ scratch, with numpy and scipy only — it imports nothing from hdjax and does no
 what a real bench does and the paper's model does not. Only the station numbers (Table I, rated
 torques, sensor classes) were taken from `hdjax._rig`; the profiles are generated here.
 
-| | hdjax's plant (`_plant`) | this bench |
-|---|---|---|
-| integrator | adaptive implicit ODE solver on smoothed terms | fixed step (20 kHz) at the velocity level: flexspline torque (spring and power-law damping), viscous friction and positions by the trapezoidal rule, the implicit half solved in closed form (a quadratic in √|Δθ'| for α = ½); Coulomb/Stribeck part explicit; reversals and breakaways located inside the step |
-| low-speed friction | tanh(ω/s) regularisation of eq. 9 | exact sticking: ωm is exactly 0 while the holding torque stays inside the breakaway band, breakaway = 1.1–1.3 × max(Ts, Ts + Tss1) per direction (drawn; both Table I drives have Tss1 < 0, so the eq. 9 zero-speed limit is *below* Ts and a real static excess needs the max), sliding on the eq. 9 curve with its non-viscous part clipped at 0 (friction never drives); or LuGre (`low_speed="lugre"`) |
-| input | the recorded current, interpolated | a PI current loop (20 kHz, 1.5 kHz bandwidth) on an R–L winding with back-EMF tracks the commanded profile; the *actual* current drives the motor and is sampled at 1 kHz with PWM ripple, offset and noise |
-| sensors | white noise | strain gauge and tachometer first-order low-passes, tachometer ripple (order 11 per motor turn), 2¹⁶-count encoder (floor), DC offsets, time-stamp jitter (samples taken at the jittered instants) |
-| drive | Table I | each parameter drawn log-normally around Table I (HD1 / HD2) from the seed |
+What differs from hdjax's plant (`_plant`):
+
+- *Integrator.* hdjax: an adaptive implicit ODE solver on smoothed terms. Here: a fixed step
+  (20 kHz) at the velocity level; the flexspline torque (spring and power-law damping), viscous
+  friction and positions by the trapezoidal rule, the implicit half solved in closed form (a
+  quadratic in √|Δθ'| for α = ½); Coulomb/Stribeck part explicit; velocity reversals and
+  breakaways located inside the step.
+- *Low-speed friction.* hdjax: tanh(ω/s) regularisation of eq. 9. Here: exact sticking — ωm is
+  exactly 0 while the holding torque stays inside the breakaway band; breakaway = 1.1–1.3 ×
+  max(Ts, Ts + Tss1) per direction (drawn; both Table I drives have Tss1 < 0, so the eq. 9
+  zero-speed limit lies *below* Ts and a real static excess needs the max); sliding on the eq. 9
+  curve with its non-viscous part clipped at 0 (friction never drives). Or LuGre
+  (`low_speed="lugre"`).
+- *Input.* hdjax: the recorded current, interpolated. Here: a PI current loop (20 kHz, 1.5 kHz
+  bandwidth) on an R–L winding with back-EMF tracks the commanded profile; the *actual* current
+  drives the motor and is sampled at 1 kHz with PWM ripple, offset and noise.
+- *Sensors.* hdjax: white noise. Here: strain-gauge and tachometer first-order low-passes,
+  tachometer ripple (order 11 per motor turn), 2¹⁶-count encoder (floor), DC offsets, time-stamp
+  jitter (samples taken at the jittered instants).
+- *Drive.* Each parameter drawn log-normally around Table I (HD1 / HD2) from the seed.
 
 Step-halving check (20 → 40 kHz, 16 records × 2.5 s, HD1): the recorded torque changes by 0.009 σ
 RMS (0.4 σ at the worst single sample, at slip events) and the motor velocity by 0.02 σ RMS
@@ -46,7 +59,6 @@ import numpy as np
 import yaml
 from scipy import signal
 
-
 __all__ = ["Deviations", "EFFECTS", "STATIONS", "make_dataset", "simulate_dataset"]
 
 TWO_PI = 2.0 * math.pi
@@ -70,7 +82,9 @@ EFFECT_UNITS = {
     "rate_independent_hysteresis": "N*m (Th of T += Th z, Dahl z' = (dtheta'/sigma)(1 - z sign dtheta'))",
     "presliding_friction": "rad (presliding displacement of a LuGre bristle at breakaway, motor side)",
 }
-DEFAULT_ORDERS = {"kinematic_error": [2], "torque_sensor_ripple": [2], "cogging": [6], "position_dependent_friction": [1]}
+DEFAULT_ORDERS = {
+    "kinematic_error": [2], "torque_sensor_ripple": [2], "cogging": [6], "position_dependent_friction": [1],
+}  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,7 +149,7 @@ class Deviations:
     jitter: float = 0.004
 
     @classmethod
-    def none(cls) -> "Deviations":
+    def none(cls) -> Deviations:
         """All deviations off: the paper's model with white sensor noise only."""
         return cls(drive_spread=0.0, stiction=None, current_loop=False, pwm_ripple=0.0, sensor_dynamics=False,
                    tacho_ripple=0.0, quantisation=False, offsets=None, jitter=0.0)  # fmt: skip
@@ -190,7 +204,8 @@ def _draw_bench(drive: str, seed: int, dev: Deviations, noise: str, sample_rate:
     }
     signs = rng.choice([-1.0, 1.0], size=3)
     mags = rng.uniform(*dev.offsets, size=3) if dev.offsets else np.zeros(3)
-    realised["offset_factors"] = {c: float(s * m) for c, s, m in zip(("torque", "motor_velocity", "current"), signs, mags)}
+    chans = ("torque", "motor_velocity", "current")
+    realised["offset_factors"] = {c: float(s * m) for c, s, m in zip(chans, signs, mags)}
     return {
         "station": st, "params": p, "breakaway": brk, "breakaway_factors": [float(f) for f in fac],
         "zero_speed_friction": zero_speed, "R": float(R), "L": float(L), "sensors": sensors, "realised": realised,
@@ -253,7 +268,6 @@ def _profiles(bench: dict, seed: int, n_locked: int, n_free: int, duration: floa
     N, Km = st.gear_ratio, st.torque_constant
     Jtot = p["Jeff"] + st.load_inertia / N**2
     i_brk = max(brk.values()) / Km
-    i_rated = st.rated_torque / (N * Km)
     f_res = math.sqrt(p["K1"] / (N**2 * p["Jeff"])) / TWO_PI
     ramp = _ramp(t)
     out = []
@@ -278,7 +292,9 @@ def _profiles(bench: dict, seed: int, n_locked: int, n_free: int, duration: floa
     n_small = 0 if n_locked == 0 else max(1, round(0.35 * n_locked))
     big_targets = list(rng.permutation(np.geomspace(0.25, 0.8, max(n_locked - n_small, 1))))
     small_kinds, big_kinds = ("sine", "triangle", "multisine"), ("sine", "chirp", "square", "multisine", "triangle")
-    wn = TWO_PI * f_res  # linear locked model, ζ = 0.3 (the power-law damping is strong), to keep the peak torque below its target
+    # first guess of the locked amplitudes: linear locked model, ζ = 0.3 (the power-law damping is
+    # strong); `_pilot_locked` then scales them to their peak-torque targets
+    wn = TWO_PI * f_res
     bz, az = signal.bilinear([N * Km * wn**2], [1.0, 0.6 * wn, wn**2], fs=1.0 / (t[1] - t[0]))
     for j in range(n_locked):
         if j < n_small:
@@ -475,7 +491,8 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
             j0 = n + 1 - d0
             hist = H["ia"]
             i1 = (1.0 - dfr) * np.where(j0 >= 0, hist[np.maximum(j0, 0), cols], 0.0) + dfr * np.where(
-                j0 >= 1, hist[np.maximum(j0 - 1, 0), cols], 0.0)
+                j0 >= 1, hist[np.maximum(j0 - 1, 0), cols], 0.0
+            )
             tau = 0.5 * Km * (idel + i1)
             idel = i1
         else:
@@ -583,8 +600,9 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
         if any_pre:  # bristle: deflects while stuck, fully loaded (kinetic level) while sliding
             zp_ = np.where(stk, zp_ + h * w_new, np.where(w_new > 0, fp, np.where(w_new < 0, -fn, 0.0)) / sig0)
         if any_lug:
-            w_new, v_new, T_new, r_new = (np.where(lug, x[3], y) for x, y in zip((W, V, T, R_),
-                                                                                 (w_new, v_new, T_new, r_new)))
+            w_new, v_new, T_new, r_new = (
+                np.where(lug, x[3], y) for x, y in zip((W, V, T, R_), (w_new, v_new, T_new, r_new))
+            )
             s2 = np.sign(w_new)
             zss2 = s2 * g / sig0
             zl = np.where(lug, zss2 + (zl - zss2) * np.exp(-sig0 * np.abs(w_new) * h / g), 0.0)
@@ -841,7 +859,7 @@ def simulate_dataset(
         H = _integrate(bench, np.tile(icmd, (1, V)), np.tile(free, V), np.tile(start, V), mags, specs, dev, fr,
                        low_speed)  # fmt: skip
         C = _sense(bench, H, np.tile(times, (1, V)), dev, fr, mags, specs)
-        return [{k: v[:, j * B:(j + 1) * B] for k, v in C.items()} for j in range(V)]
+        return [{k: v[:, j * B : (j + 1) * B] for k, v in C.items()} for j in range(V)]
 
     calib: dict[str, dict] = {}
     final = dict(fixed)
@@ -942,7 +960,7 @@ def _truth(bench, dev, seed, drive, noise, low_speed, fine_rate, final, calib, s
         d = {"magnitude": mag, "unit": EFFECT_UNITS[e], **calib.get(e, {"snr": None, "note": "magnitude given"})}
         if e in PERIODIC:
             d.update(orders=specs[e]["k"].astype(int), phases=specs[e]["phi"], weights=specs[e]["w"],
-                     form="magnitude * weight_k * sin(k * theta_m + phi_k), theta_m = wave-generator angle")  # fmt: skip
+                     form="magnitude * weight_k * sin(k * theta_m + phi_k), theta_m: wave-generator angle")  # fmt: skip
         if e == "thermal_drift":
             d["tau"] = specs["thermal_tau"]
         if e == "rate_independent_hysteresis":
@@ -961,8 +979,11 @@ def _truth(bench, dev, seed, drive, noise, low_speed, fine_rate, final, calib, s
         "drive_name": st.name,
         "parameters": {k: p[k] for k in PARAMETER_KEYS},
         "nominal_parameters": dict(st.params),
-        "drive": {"gear_ratio": st.gear_ratio, "torque_constant": st.torque_constant,
-                  "load_inertia": st.load_inertia},  # fmt: skip
+        "drive": {
+            "gear_ratio": st.gear_ratio,
+            "torque_constant": st.torque_constant,
+            "load_inertia": st.load_inertia,
+        },  # fmt: skip
         "rated_torque": st.rated_torque,
         "low_speed": {
             "law": low_speed,
@@ -976,10 +997,25 @@ def _truth(bench, dev, seed, drive, noise, low_speed, fine_rate, final, calib, s
         "sensors": bench["sensors"],
         "deviations": {**dataclasses.asdict(dev), **bench["realised"]},
         "effects": eff,
-        "integrator": {"fine_rate_hz": fine_rate, "scheme": "semi-implicit Euler at velocity level, closed-form "
-                       "implicit power-law damping, exact (Moreau/Karnopp) sticking"},  # fmt: skip
-        "experiments": [{"file": r["file"], "mode": r["mode"], "start_time": r["start_time"], "regime": r["regime"],
-                         "kind": r["kind"], "noise": r["noise"], **r["info"]} for r in records],  # fmt: skip
+        "integrator": {
+            "fine_rate_hz": fine_rate,
+            "current_loop_rate_hz": LOOP_RATE,
+            "scheme": "fixed step, velocity level: trapezoidal flexspline torque (spring + power-law damping), "
+            "viscous friction and positions, implicit half in closed form; Coulomb/Stribeck explicit; exact "
+            "sticking with reversals and breakaways located inside the step",
+        },
+        "experiments": [
+            {
+                "file": r["file"],
+                "mode": r["mode"],
+                "start_time": r["start_time"],
+                "regime": r["regime"],
+                "kind": r["kind"],
+                "noise": r["noise"],
+                **r["info"],
+            }
+            for r in records
+        ],  # fmt: skip
     }
     if low_speed == "lugre":
         s0 = 0.5 * sum(bench["breakaway"].values()) / LUGRE_DELTA
