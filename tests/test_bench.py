@@ -66,6 +66,14 @@ def test_motor_sticks_exactly_in_a_small_locked_test():
     assert np.all(held <= 1.05 * brk["p"] + 0.002) and np.all(held >= -1.05 * brk["n"] - 0.002)
 
 
+DEV_KW = dict(n_locked=1, n_free=1, duration=0.5, seed=5)
+
+
+@pytest.fixture(scope="module")
+def all_on():
+    return _bench.simulate_dataset(**DEV_KW)[0]
+
+
 @pytest.mark.parametrize(
     "change",
     [
@@ -80,13 +88,10 @@ def test_motor_sticks_exactly_in_a_small_locked_test():
         {"jitter": 0.0},
     ],
 )
-def test_each_deviation_switch_changes_the_data(change, base=[]):
-    kw = dict(n_locked=1, n_free=1, duration=0.5, seed=5)
-    if not base:
-        base.append(_bench.simulate_dataset(**kw)[0])
-    recs, truth = _bench.simulate_dataset(deviations=_bench.Deviations(**change), **kw)
+def test_each_deviation_switch_changes_the_data(change, all_on):
+    recs, truth = _bench.simulate_dataset(deviations=_bench.Deviations(**change), **DEV_KW)
     cols = ("time", "current", "motor_velocity", "torque", "output_position")
-    differs = [c for r0, r1 in zip(base[0], recs) for c in cols if c in r0 and not np.array_equal(r0[c], r1[c])]
+    differs = [c for r0, r1 in zip(all_on, recs) for c in cols if c in r0 and not np.array_equal(r0[c], r1[c])]
     assert differs, change
     assert truth["deviations"][next(iter(change))] == (list(change.values())[0])
 

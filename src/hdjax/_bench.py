@@ -41,6 +41,14 @@ per channel. Note that the output angle integrates velocity errors and its σ is
 friction-like effects it is usually the most affected channel and the calibrated magnitudes are
 small; pass `channels=["torque", "motor_velocity"]` for effects sized on the dynamic channels.
 
+The effects follow SPEC §4's "model extension" column: periodic ones are Σ a·w_k·sin(k·θm + φ_k)
+in the wave-generator angle θm (orders = cycles per wave-generator turn); the kinematic error adds
+to the torsion (the motor still sees T/N); thermal drift scales the viscous friction by
+1 + β·exp(−(start_time + t)/τ); input delay makes the motor torque Km·i_actual(t − delay);
+rate-independent hysteresis adds a Dahl torque Th·z to the flexspline torque (the power-law
+damping stays); presliding friction lets a stuck motor ride on a bristle spring (elasto-plastic,
+displacement `magnitude` at breakaway) or, with `low_speed="lugre"`, widens the LuGre bristle.
+
 Main entry points: `make_dataset(out_dir, ...)` writes a SPEC §2 folder with `truth.yaml`;
 `simulate_dataset(...)` returns the same records in memory. Units are SI throughout.
 """
