@@ -67,7 +67,7 @@ import numpy as np
 import yaml
 from scipy import signal
 
-__all__ = ["Deviations", "EFFECTS", "STATIONS", "make_dataset", "simulate_dataset"]
+__all__ = ["Bench", "Deviations", "EFFECTS", "STATIONS", "make_dataset", "pi_law", "simulate_dataset"]
 
 TWO_PI = 2.0 * math.pi
 DEG = 180.0 / math.pi
@@ -411,8 +411,12 @@ TH = 0.5  # trapezoidal weight of the spring, viscous friction and positions (po
 LOOP_RATE = 20000.0  # Hz, current-loop (PWM) update rate; the integrator's rate is a multiple of it
 
 
-def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed):
+def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed, hook=None, hook_every=1):
     """Fixed-step simulation of B records at once.
+
+    `hook(n, H)`, if given, is called before fine step n whenever n % `hook_every` == 0, with the
+    histories H filled up to row n; it may write `icmd[n:n + hook_every]` (a sampled controller
+    closing the loop, `Bench.closed_loop`). The command is then held over the step.
 
     `icmd` (steps, B) commanded current (A) on the fine grid; `free` (B,) bool; `start` (B,) session
     start times (s); `mags` effect name → (B,) physical magnitudes (0: off); `specs` periodic effect
@@ -484,6 +488,8 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
     for k in H:
         H[k][0] = 0.0
     for n in range(ns):
+        if hook is not None and n % hook_every == 0:
+            hook(n, H)
         # --- current loop (PI at LOOP_RATE, voltage held) and winding to t_{n+1}, back-EMF at ωm(t_n)
         if dev.current_loop:
             if n % sub == 0:
@@ -492,7 +498,7 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
                 volt = Kp * e + integ
             ia_new = ia * ae + (volt - Km * wm) * be
         else:
-            ia_new = icmd[min(n + 1, ns - 1)]
+            ia_new = icmd[n] if hook is not None else icmd[min(n + 1, ns - 1)]
         H["ia"][n + 1] = ia_new
         # --- drive torque over the step: current averaged over its ends (2nd order in the input)
         if on["input_delay"]:
@@ -1104,3 +1110,172 @@ def make_dataset(
     _atomic_write(folder / "truth.yaml", yaml.safe_dump(truth, sort_keys=False, allow_unicode=True))
     _atomic_write(folder / "dataset.yaml", yaml.safe_dump(doc, sort_keys=False, allow_unicode=True))
     return truth
+
+
+# ----------------------------------------------------------------------------------------------
+# Closed loop: a sampled controller on the bench's physics
+# ----------------------------------------------------------------------------------------------
+
+
+class Bench:
+    """One drawn bench (drive, deviations, hidden effects), rebuilt from a seed or a `truth.yaml`,
+    that a sampled controller can be run on (`closed_loop`).
+
+    `Bench.from_truth(truth)` redraws the bench from the truth mapping's seed, drive, deviations,
+    noise mode and sample rate, and checks that the drawn parameters are the recorded ones; hidden
+    effects act with their recorded magnitudes (orders, phases, weights, τ, σ as recorded).
+    """
+
+    def __init__(self, *, drive="hd1", seed=0, deviations=None, effects=None, noise="per_sensor",
+                 sample_rate=1000.0, low_speed="stick_slip", fine_rate=20000.0):  # fmt: skip
+        self.dev = Deviations() if deviations is None else deviations
+        self.bench = _draw_bench(drive, seed, self.dev, noise, sample_rate)
+        self.seed, self.drive, self.low_speed = int(seed), drive, low_speed
+        self.sample_rate = float(sample_rate)
+        self.sub = max(1, int(round(fine_rate / sample_rate)))
+        self.fine_rate = self.sub * self.sample_rate
+        self.specs, targets, fixed = _effect_specs(effects or {}, self.bench, seed)
+        if targets:
+            raise ValueError(f"`Bench` needs physical magnitudes for its effects, got snr targets for {sorted(targets)}.")
+        self.magnitudes = fixed
+
+    @classmethod
+    def from_truth(cls, truth: dict) -> Bench:
+        """The bench that wrote `truth` (the mapping of a `truth.yaml` from `make_dataset`)."""
+        if not str(truth.get("generator", "")).startswith("hdjax._bench"):
+            raise ValueError("this truth.yaml was not written by hdjax._bench; no bench can be rebuilt from it.")
+        fields = {f.name for f in dataclasses.fields(Deviations)}
+        dev = Deviations(**{k: tuple(v) if isinstance(v, list) else v
+                            for k, v in truth["deviations"].items() if k in fields})  # fmt: skip
+        effects = {}
+        for name, d in (truth.get("effects") or {}).items():
+            e = {"magnitude": float(d["magnitude"])}
+            for k_in, k_out in (("orders", "orders"), ("phases", "phases"), ("weights", "weights"), ("tau", "tau"),
+                                ("sigma", "sigma")):  # fmt: skip
+                if k_in in d:
+                    e[k_out] = d[k_in]
+            effects[name] = e
+        b = cls(drive=str(truth["drive_name"]).lower(), seed=int(truth["seed"]), deviations=dev, effects=effects,
+                noise=truth["sensors"]["noise"], sample_rate=float(truth["sensors"]["sample_rate"]),
+                low_speed=truth["low_speed"]["law"], fine_rate=float(truth["integrator"]["fine_rate_hz"]))  # fmt: skip
+        for k, v in truth["parameters"].items():
+            if not math.isclose(b.bench["params"][k], float(v), rel_tol=1e-9, abs_tol=1e-15):
+                raise ValueError(f"truth.yaml parameter {k} = {v} is not the one redrawn from its seed "
+                                 f"({b.bench['params'][k]}); was it written by another version of hdjax._bench?")
+        b.session_end = max((float(e["start_time"]) for e in truth.get("experiments", [])), default=0.0)
+        return b
+
+    @property
+    def parameters(self) -> dict:
+        """The drawn (true) parameters, SPEC keys."""
+        return dict(self.bench["params"])
+
+    @property
+    def station(self) -> Station:
+        return self.bench["station"]
+
+    def closed_loop(self, law, reference, free, *, current_limit, seed=0, start_time=None, noise=True) -> dict:
+        """Run a sampled controller on the bench, B runs at once.
+
+        At every sample instant t_k = k/sample_rate the controller sees the *sensed* signals:
+        strain-gauge torque (true torque plus any torque-sensor ripple, through the drawn gauge
+        low-pass, plus offset and white noise) and tachometer velocity (motor velocity plus tacho
+        ripple, through its low-pass, plus offset and noise); time stamps are nominal (no jitter).
+        It returns a current command, which is clipped to ±`current_limit` (the amplifier) and held
+        (zero-order hold) as the set-point of the bench's current loop until t_{k+1}; the actual
+        current drives the motor. Hidden effects act as in the recorded data.
+
+        **Arguments:**
+
+        - `law(k, r_k, y_k, w_k) -> u_k`: the controller, called once per sample with (B,) arrays of
+          reference torque (N·m), measured torque (N·m) and measured motor velocity (rad/s); returns
+          (B,) current commands (A). It keeps its own state.
+        - `reference`: (K, B) reference torque at the sample instants (N·m), passed to `law`.
+        - `free`: (B,) bool, True for a free output (load inertia), False for a locked one.
+        - `current_limit`: amplifier limit (A).
+        - `seed`: seed of the sensor noise of this run.
+        - `start_time`: session time of the run (s; thermal drift), default the end of the session.
+        - `noise`: False to switch the white sensor noise off (offsets and ripple stay).
+
+        **Returns:** dict of (K, B) arrays at the sample instants: `time` (s), `reference`,
+        `torque` (true transmitted torque), `measured_torque` (N·m), `motor_velocity` (true),
+        `measured_velocity` (rad/s), `output_velocity` (rad/s), `command` (law output), `current_command`
+        (after the limit), `current` (actual current at t_k, A).
+        """
+        reference = np.asarray(reference, float)
+        if reference.ndim == 1:
+            reference = reference[:, None]
+        K, B = reference.shape
+        free = np.broadcast_to(np.asarray(free, bool), (B,)).copy()
+        sub, fr = self.sub, self.fine_rate
+        ns = K * sub
+        icmd = np.zeros((ns, B))
+        st, sens, real = self.station, self.bench["sensors"], self.bench["realised"]
+        mags = {e: np.full(B, float(self.magnitudes.get(e, 0.0))) for e in EFFECTS}
+        t0 = getattr(self, "session_end", 0.0) if start_time is None else float(start_time)
+        rng = _rng(seed, "closed-loop-noise")
+        sT, sw = sens["torque_noise"], sens["tacho_noise"]
+        offT = real["offset_factors"]["torque"] * sT if self.dev.offsets else 0.0
+        offw = real["offset_factors"]["motor_velocity"] * sw if self.dev.offsets else 0.0
+        nT = rng.standard_normal((K, B)) * sT if noise else np.zeros((K, B))
+        nw = rng.standard_normal((K, B)) * sw if noise else np.zeros((K, B))
+        filt = {}
+        for key, fc in (("T", real["torque_filter_hz"]), ("w", real["tacho_filter_hz"])):
+            if fc is None:
+                filt[key] = None
+            else:
+                a = math.exp(-TWO_PI * fc / fr)
+                filt[key] = ([0.5 * (1.0 - a), 0.5 * (1.0 - a)], [1.0, -a], np.zeros((1, B)))
+        out = {k: np.zeros((K, B)) for k in ("torque", "measured_torque", "motor_velocity", "measured_velocity",
+                                               "output_velocity", "command", "current_command", "current")}  # fmt: skip
+        last = [-1]
+
+        def sensed(key, x):
+            f = filt[key]
+            if f is None:
+                return x[-1]
+            y, zi = signal.lfilter(f[0], f[1], x, axis=0, zi=f[2])
+            filt[key] = (f[0], f[1], zi)
+            return y[-1]
+
+        def hook(n, H):
+            k = n // sub
+            rows = slice(last[0] + 1, n + 1)
+            last[0] = n
+            T, wm, thm = H["T"][rows], H["wm"][rows], H["thm"][rows]
+            if mags["torque_sensor_ripple"].any():
+                T = T + mags["torque_sensor_ripple"][None, :] * _periodic(self.specs["torque_sensor_ripple"],
+                                                                          thm.ravel())[0].reshape(thm.shape)  # fmt: skip
+            tach = wm
+            if self.dev.tacho_ripple:
+                amp = self.dev.tacho_ripple * sT * np.tanh(np.abs(wm))
+                tach = wm + amp * np.sin(self.dev.tacho_ripple_order * thm + real["tacho_ripple_phase"])
+            y = sensed("T", T) + offT + nT[k]
+            w = sensed("w", tach) + offw + nw[k]
+            u = np.asarray(law(k, reference[k], y, w), float)
+            i = np.clip(u, -current_limit, current_limit)
+            icmd[n : n + sub] = i
+            out["torque"][k], out["motor_velocity"][k] = H["T"][n], H["wm"][n]
+            out["measured_torque"][k], out["measured_velocity"][k] = y, w
+            out["command"][k], out["current_command"][k], out["current"][k] = u, i, H["ia"][n]
+            out["output_velocity"][k] = (H["tho"][n] - H["tho"][max(n - sub, 0)]) * fr / sub
+
+        _integrate(self.bench, icmd, free, np.full(B, t0), mags, self.specs, self.dev, fr, self.low_speed,
+                   hook=hook, hook_every=sub)  # fmt: skip
+        out["time"] = np.repeat((np.arange(K) / self.sample_rate)[:, None], B, axis=1)
+        out["reference"] = reference.copy()
+        return out
+
+
+def pi_law(kp, ki, *, sample_period, feedforward=0.0):
+    """A plain discrete PI torque law for `Bench.closed_loop`: u_k = ff·r_k + kp·e_k + I_k,
+    I_{k+1} = I_k + ki·T_s·e_k, e_k = r_k − y_k (A, N·m); gains scalar or (B,)."""
+    state = {"I": 0.0}
+
+    def law(k, r, y, w):
+        e = r - y
+        u = feedforward * r + kp * e + state["I"]
+        state["I"] = state["I"] + ki * sample_period * e
+        return u
+
+    return law

@@ -156,13 +156,23 @@ def smooth_saturation(u: ArrayLike, limit: ArrayLike, scale: ArrayLike) -> Float
     return u - scale * (jnp.logaddexp(0.0, (u - limit) / scale) - jnp.logaddexp(0.0, (-u - limit) / scale))
 
 
+def _edge(t, start, rise):
+    """0 before `start`, 1 after `start + rise`, a smoothstep in between (a jump for rise = 0)."""
+    if rise <= 0:
+        return (t >= start).astype(float)
+    x = jnp.clip((t - start) / rise, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
 def step_reference(
-    amplitude: float, *, duration: float, sample_period: float = 1e-3, start: float = 0.02, free: bool = False
+    amplitude: float, *, duration: float, sample_period: float = 1e-3, start: float = 0.02, free: bool = False,
+    rise: float = 0.0,
 ) -> Reference:
-    """A torque step of `amplitude` (N·m) at time `start` (s), `duration` s long."""
+    """A torque step of `amplitude` (N·m) at time `start` (s), `duration` s long; with `rise` > 0 (s)
+    its edge is a smoothstep of that length (a step the drive can follow)."""
     n = int(round(duration / sample_period))
     t = jnp.arange(n) * sample_period
-    return Reference(torque=jnp.where(t >= start - 0.5 * sample_period, amplitude, 0.0), free=float(free))
+    return Reference(torque=amplitude * _edge(t + 0.5 * sample_period, start, rise), free=float(free))
 
 
 def sine_reference(
@@ -176,16 +186,16 @@ def sine_reference(
 
 def doublet_reference(
     amplitude: float, width: float, *, duration: float, sample_period: float = 1e-3, start: float = 0.02,
-    free: bool = True,
+    free: bool = True, rise: float = 0.0,
 ) -> Reference:
     """A torque step of `amplitude` (N·m) at `start` (s), reversed to −`amplitude` after `width`
     (s) and back to zero after another `width`: the free-motion step, which brings the load back to
-    rest instead of accelerating it without bound."""
+    rest instead of accelerating it without bound. With `rise` > 0 (s) each edge is a smoothstep of
+    that length starting at the switching instant (the areas, hence the final speed, stay zero)."""
     n = int(round(duration / sample_period))
     t = jnp.arange(n) * sample_period + 0.5 * sample_period
-    up = (t >= start) & (t < start + width)
-    down = (t >= start + width) & (t < start + 2 * width)
-    return Reference(torque=amplitude * (up.astype(float) - down.astype(float)), free=float(free))
+    e = lambda s: _edge(t, s, rise)  # noqa: E731
+    return Reference(torque=amplitude * (e(start) - 2.0 * e(start + width) + e(start + 2 * width)), free=float(free))
 
 
 class _Held(eqx.Module):
@@ -510,10 +520,12 @@ class TuneResult(eqx.Module):
     history: list = eqx.field(static=True)
     steps: int = eqx.field(static=True)
     converged: bool = eqx.field(static=True)
+    runs: list = eqx.field(static=True, default=())
+    best_run: int = eqx.field(static=True, default=0)
 
 
 def tune_gains(
-    start: TorqueGains,
+    start,
     cost_fn,
     *,
     scaling: GainScaling,
@@ -528,6 +540,10 @@ def tune_gains(
     line search) in the scaled coordinates of `scaling`; gradients by reverse-mode AD through the
     closed loop. Steps are taken one by one so that the cost of every accepted iterate is kept.
 
+    `start` may be a list of `TorqueGains` (multi-start): BFGS runs from each in turn with the same
+    compiled step, and the result with the lowest final cost is returned; its `runs` lists every
+    start's history.
+
     `max_gradient` caps the gradient norm in θ (-). Where the closed loop is chaotic (a limit
     cycle in stick-slip, e.g. a free-output step under an aggressive start), the gradient of a
     0.5 s horizon is huge and meaningless (central differences disagree with it and with each
@@ -539,27 +555,70 @@ def tune_gains(
     (a progress bar)."""
     import optimistix as optx
 
+    starts = list(start) if isinstance(start, (list, tuple)) else [start]
     solver = optx.BFGS(rtol=rtol, atol=atol)
     fn = lambda theta, args: (cost_fn(scaling.gains(_clip_gradient(theta, max_gradient))), None)  # noqa: E731
-    theta = scaling.theta(start)
-    f_struct = jax.ShapeDtypeStruct((), theta.dtype)
-    state = solver.init(fn, theta, None, {}, f_struct, None, frozenset())
+    f_struct = jax.ShapeDtypeStruct((), jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    init = eqx.filter_jit(lambda th: solver.init(fn, th, None, {}, f_struct, None, frozenset()))
     step = eqx.filter_jit(lambda th, st: solver.step(fn, th, None, {}, st, frozenset()))
     terminate = eqx.filter_jit(lambda th, st: solver.terminate(fn, th, None, {}, st, frozenset()))
-    history = []
-    converged = False
-    n = 0
-    for n in range(1, max_steps + 1):
-        theta, state, _ = step(theta, state)
-        f = float(state.f_info.f)
-        if progress is not None:
-            progress(n, f)
-        if not history or f != history[-1]:
-            history.append(f)
-            if log is not None:
-                log(f"  step {n:3d}: cost {f:.5g}")
-        done, _ = terminate(theta, state)
-        if bool(done):
-            converged = True
-            break
-    return TuneResult(gains=scaling.gains(theta), history=history, steps=n, converged=converged)
+    runs = []
+    for j, s0 in enumerate(starts):
+        theta = scaling.theta(s0)
+        state = init(theta)
+        history = []
+        converged = False
+        n = 0
+        for n in range(1, max_steps + 1):
+            theta, state, _ = step(theta, state)
+            f = float(state.f_info.f)
+            if progress is not None:
+                progress(n, f)
+            if not history or f != history[-1]:
+                history.append(f)
+                if log is not None:
+                    log(f"  start {j + 1}, step {n:3d}: cost {f:.5g}")
+            done, _ = terminate(theta, state)
+            if bool(done):
+                converged = True
+                break
+        # optimistix's BFGS step returns the last accepted iterate, and state.f_info.f is its cost
+        runs.append({"theta": theta, "history": history, "steps": n, "converged": converged,
+                     "final": history[-1] if history else np.inf})  # fmt: skip
+    finals = [r["final"] for r in runs]
+    k = int(np.nanargmin(np.where(np.isfinite(finals), finals, np.nan)))
+    r = runs[k]
+    return TuneResult(
+        gains=scaling.gains(r["theta"]), history=r["history"], steps=r["steps"], converged=r["converged"],
+        runs=[{"history": x["history"], "steps": x["steps"], "converged": x["converged"], "final_cost": f}
+              for x, f in zip(runs, finals)], best_run=k,
+    )  # fmt: skip
+
+
+def numpy_torque_law(gains: list[TorqueGains], controller: TorqueController, free):
+    """The control law of `closed_loop` in numpy, vectorised over B columns (one `TorqueGains` per
+    column, `free` (B,) flags), as a stateful callable `law(k, r_k, y_k, w_k) -> current` for a
+    loop simulated elsewhere (`hdjax._bench.Bench.closed_loop`). Same derivative filter, smooth
+    saturation, back-calculation anti-windup and feed-forward as `closed_loop`."""
+    g = {k: np.array([float(getattr(x, k)) for x in gains]) for k in GAIN_NAMES}
+    ts = controller.sample_period
+    N = float(controller.drive.gear_ratio)
+    Km = float(controller.drive.torque_constant)
+    a = float(np.exp(-ts / controller.derivative_filter))
+    inertia_ff = np.asarray(free, float) * N * float(controller.friction.Jeff) / float(controller.drive.load_inertia)
+    ff_sm = Smoothing(velocity_scale=controller.friction_scale)
+    st = {"I": np.zeros(len(gains)), "d": np.zeros(len(gains)), "y": np.zeros(len(gains)), "first": 1.0}
+
+    def law(k, r, y, w):
+        e = r - y
+        st["d"] = a * st["d"] + (1.0 - a) * (1.0 - st["first"]) * (y - st["y"]) / ts
+        Tf = np.asarray(friction_torque(controller.friction, jnp.asarray(w), ff_sm))
+        ff = g["kr"] * r / (N * Km) + g["kj"] * inertia_ff * r / Km + g["kf"] * Tf / Km
+        u = ff + g["kp"] * e + st["I"] - g["kd"] * st["d"]
+        lim, s = controller.current_limit, controller.saturation_scale
+        i = u - s * (np.logaddexp(0.0, (u - lim) / s) - np.logaddexp(0.0, (-u - lim) / s))
+        st["I"] = st["I"] + g["ki"] * ts * e + controller.anti_windup * (i - u)
+        st["y"], st["first"] = y, 0.0
+        return i
+
+    return law
