@@ -1174,7 +1174,8 @@ class Bench:
     def station(self) -> Station:
         return self.bench["station"]
 
-    def closed_loop(self, law, reference, free, *, current_limit, seed=0, start_time=None, noise=True) -> dict:
+    def closed_loop(self, law, reference, free, *, current_limit, seed=0, start_time=None, noise=True,
+                    tare_samples=0) -> dict:  # fmt: skip
         """Run a sampled controller on the bench, B runs at once.
 
         At every sample instant t_k = k/sample_rate the controller sees the *sensed* signals:
@@ -1196,6 +1197,9 @@ class Bench:
         - `seed`: seed of the sensor noise of this run.
         - `start_time`: session time of the run (s; thermal drift), default the end of the session.
         - `noise`: False to switch the white sensor noise off (offsets and ripple stay).
+        - `tare_samples`: if > 0, the strain gauge and the tachometer are zeroed at rest before the
+          run, as an operator does: the mean of that many sensed samples with the drive at rest
+          (offset, ripple at θm = 0, noise) is subtracted from what the controller sees.
 
         **Returns:** dict of (K, B) arrays at the sample instants: `time` (s), `reference`,
         `torque` (true transmitted torque), `measured_torque` (N·m), `motor_velocity` (true),
@@ -1219,6 +1223,14 @@ class Bench:
         offw = real["offset_factors"]["motor_velocity"] * sw if self.dev.offsets else 0.0
         nT = rng.standard_normal((K, B)) * sT if noise else np.zeros((K, B))
         nw = rng.standard_normal((K, B)) * sw if noise else np.zeros((K, B))
+        tareT = tarew = 0.0
+        if tare_samples > 0:
+            rest = _rng(seed, "closed-loop-tare")
+            rip = 0.0
+            if self.magnitudes.get("torque_sensor_ripple"):
+                rip = self.magnitudes["torque_sensor_ripple"] * _periodic(self.specs["torque_sensor_ripple"], np.zeros(1))[0][0]
+            tareT = offT + rip + (rest.standard_normal((tare_samples, B)).mean(0) * sT if noise else 0.0)
+            tarew = offw + (rest.standard_normal((tare_samples, B)).mean(0) * sw if noise else 0.0)
         filt = {}
         for key, fc in (("T", real["torque_filter_hz"]), ("w", real["tacho_filter_hz"])):
             if fc is None:
@@ -1252,11 +1264,11 @@ class Bench:
                 tach = wm + amp * np.sin(self.dev.tacho_ripple_order * thm + real["tacho_ripple_phase"])
             y = sensed("T", T) + offT + nT[k]
             w = sensed("w", tach) + offw + nw[k]
-            u = np.asarray(law(k, reference[k], y, w), float)
+            u = np.asarray(law(k, reference[k], y - tareT, w - tarew), float)
             i = np.clip(u, -current_limit, current_limit)
             icmd[n : n + sub] = i
             out["torque"][k], out["motor_velocity"][k] = H["T"][n], H["wm"][n]
-            out["measured_torque"][k], out["measured_velocity"][k] = y, w
+            out["measured_torque"][k], out["measured_velocity"][k] = y - tareT, w - tarew
             out["command"][k], out["current_command"][k], out["current"][k] = u, i, H["ia"][n]
             out["output_velocity"][k] = (H["tho"][n] - H["tho"][max(n - sub, 0)]) * fr / sub
 

@@ -587,6 +587,9 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     return result
 
 
+TARE_SAMPLES = 200
+
+
 def _validate_bench(bench, gains: dict, refs, ctrl: TorqueController, *, seed: int):
     """Every controller on every reference, in one bench run (columns)."""
     names = list(gains)
@@ -595,7 +598,7 @@ def _validate_bench(bench, gains: dict, refs, ctrl: TorqueController, *, seed: i
     rmat = np.stack([np.asarray(refs[j].torque) for _, j in cols], axis=1)
     free = np.array([bool(float(refs[j].free)) for _, j in cols])
     law = numpy_torque_law([gains[c] for c, _ in cols], ctrl, free)
-    o = bench.closed_loop(law, rmat, free, current_limit=ctrl.current_limit, seed=seed)
+    o = bench.closed_loop(law, rmat, free, current_limit=ctrl.current_limit, seed=seed, tare_samples=TARE_SAMPLES)
     traj = {}
     for c in names:
         idx = [k for k, (cc, _) in enumerate(cols) if cc == c]
@@ -608,8 +611,9 @@ def _validate_bench(bench, gains: dict, refs, ctrl: TorqueController, *, seed: i
     desc = (f"the independent bench hdjax._bench rebuilt from truth.yaml ({st.name}, seed {bench.seed}): its own fixed-step "
             f"physics with stick-slip friction, a {bench.dev.current_bandwidth:g} Hz current loop, sensor low-passes, "
             f"offsets and ripple, hidden effects {sorted(bench.magnitudes) or 'none'}; the controller runs at "
-            f"{bench.sample_rate:g} Hz on the sensed signals, its command held into the current loop; {K} samples per "
-            "reference")  # fmt: skip
+            f"{bench.sample_rate:g} Hz on the sensed signals, its command held into the current loop; strain gauge and "
+            f"tachometer zeroed at rest before each run (mean of {TARE_SAMPLES} samples, as an operator tares them); {K} "
+            "samples per reference")  # fmt: skip
     return traj, desc
 
 
