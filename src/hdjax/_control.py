@@ -533,6 +533,7 @@ def tune_gains(
     rtol: float = 1e-4,
     atol: float = 1e-6,
     max_gradient: float = 1.0,
+    cost_scale: float = 1.0,
     log=None,
     progress=None,
 ) -> TuneResult:
@@ -551,13 +552,18 @@ def tune_gains(
     its whole budget backtracking. Ordinary gradients here are O(1e-2), so the cap acts only then;
     the Armijo line search still accepts only true decreases of the cost.
 
+    `cost_scale` divides the cost inside the optimiser (costs and history are reported unscaled):
+    BFGS's first trial step is the raw gradient, so a cost of O(1e-3) gives steps of O(1e-3) in the
+    log-gains and the step budget is spent before the Hessian estimate is any good; pass the start
+    cost to make it O(1).
+
     `log(line)` gets one line per accepted cost; `progress(step, cost)` is called after every step
     (a progress bar)."""
     import optimistix as optx
 
     starts = list(start) if isinstance(start, (list, tuple)) else [start]
     solver = optx.BFGS(rtol=rtol, atol=atol)
-    fn = lambda theta, args: (cost_fn(scaling.gains(_clip_gradient(theta, max_gradient))), None)  # noqa: E731
+    fn = lambda theta, args: (cost_fn(scaling.gains(_clip_gradient(theta, max_gradient))) / cost_scale, None)  # noqa: E731
     f_struct = jax.ShapeDtypeStruct((), jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
     init = eqx.filter_jit(lambda th: solver.init(fn, th, None, {}, f_struct, None, frozenset()))
     step = eqx.filter_jit(lambda th, st: solver.step(fn, th, None, {}, st, frozenset()))
@@ -571,7 +577,7 @@ def tune_gains(
         n = 0
         for n in range(1, max_steps + 1):
             theta, state, _ = step(theta, state)
-            f = float(state.f_info.f)
+            f = float(state.f_info.f) * cost_scale
             if progress is not None:
                 progress(n, f)
             if not history or f != history[-1]:

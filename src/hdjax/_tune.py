@@ -86,9 +86,9 @@ DEFAULTS = {
     "headroom": 0.7,  # feed-forward current of a scaled reference / current limit
     "plants": 6,  # plant parameter sets drawn for the robust cost
     "seed": 0,
-    "max_steps": 8,  # BFGS steps per start
+    "max_steps": 7,  # BFGS steps per start
     "starts": 2,  # BFGS runs from the best candidates of the start search
-    "start_factors": [1.0, 2.0, 4.0],  # kp, ki multiples of the model-based PI tried (grid) before BFGS
+    "start_factors": [0.5, 1.0, 2.0],  # kp, ki multiples of the model-based PI tried (grid) before BFGS
     "ms_max": 1.7,  # sensitivity peak above which the margin term acts
     "margin_weight": 0.2,  # weight of the squared Ms excess in the tuning cost
     "model_pi_ms": 1.4,  # Ms bound of the model-based (MIGO) PI baseline
@@ -456,6 +456,7 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     n_bfgs = int(opts["max_steps"]) * len(starts)
     with task(log, f"BFGS from {len(starts)} start(s)", n_bfgs, unit="iterations") as bar:
         res = tune_gains(starts, cost_fn, scaling=scaling, max_steps=int(opts["max_steps"]), log=log,
+                         cost_scale=float(search[picked[0]]["cost"]),
                          progress=lambda k, f: bar.advance(1, info=f"cost {f:.5g}"))  # fmt: skip
     timing["bfgs"] = time.time() - t0
     tuned = res.gains
@@ -629,7 +630,7 @@ def _validate_model(nominal_plant: Plant, gains: dict, R, ctrl: TorqueController
         traj[c] = {"time": np.asarray(tr.time), "reference": np.asarray(tr.reference), "torque": np.asarray(tr.torque),
                    "measured_torque": np.asarray(tr.measured_torque), "current": np.asarray(tr.current),
                    "command_limited": np.asarray(tr.current)}  # fmt: skip
-    desc = ("no bench: this dataset has no truth.yaml from the independent bench (hdjax._bench), so the controllers are "
+    desc = ("this dataset has no truth.yaml written by hdjax._bench, so the controllers are "
             f"validated on the identified model ({sub} Rodas3 substeps per sample, estimated sensor noise); this is not a "
             "test on hardware: run the tuned gains on the real drive")  # fmt: skip
     return traj, desc
@@ -771,7 +772,7 @@ def _report(r: dict) -> str:
             row.append(f"GM {_fmt(x['gain_margin'])}, PM {_fmt(x['phase_margin_deg'])}°")
         L.append(f"| margins, nominal {'free' if mode else 'locked'} | " + " | ".join(row) + " |")
     v = r["validation"]
-    title = "Validation on the independent bench" if kind == "bench" else "Validation on the identified model (no bench)"
+    title = "Validation on the independent bench" if kind == "bench" else "Validation on the identified model (not a hardware test)"
     L += [
         "",
         f"## {title}",
