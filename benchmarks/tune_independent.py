@@ -24,7 +24,6 @@ import time
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402

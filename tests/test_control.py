@@ -53,17 +53,18 @@ def test_gradient_matches_central_differences():
 
     def cost(theta):
         g = TorqueGains(
-            kp=0.2 * jnp.exp(theta[0]), ki=100.0 * jnp.exp(theta[1]), kd=1e-4 * theta[2], kr=theta[3], kf=theta[4], kj=theta[5]
+            kp=0.2 * jnp.exp(theta[0]), ki=100.0 * jnp.exp(theta[1]), kd=1e-4 * theta[2], kr=theta[3], kf=theta[4], kj=theta[5],
+            kpf=jnp.exp(theta[6]), kif=jnp.exp(theta[7]),
         )
         run = lambda r, a, b: closed_loop(g, plant, r, controller=ctrl, noise=(a, b), substeps=2, smoothing=SM)  # noqa: E731
         tr = jax.vmap(run)(R, noise[0], noise[1])
         return jnp.mean((tr.reference - tr.torque) ** 2, axis=1) / 100.0
 
-    th = jnp.array([0.1, -0.2, 0.5, 0.3, 0.5, 0.7])
+    th = jnp.array([0.1, -0.2, 0.5, 0.3, 0.5, 0.7, 0.2, -0.3])
     g = np.asarray(jax.jit(jax.jacrev(cost))(th))  # (reference, gain)
     f = jax.jit(cost)
     h = 1e-5
-    fd = np.stack([(f(th.at[i].add(h)) - f(th.at[i].add(-h))) / (2 * h) for i in range(6)], axis=1)
+    fd = np.stack([(f(th.at[i].add(h)) - f(th.at[i].add(-h))) / (2 * h) for i in range(8)], axis=1)
     assert np.all(np.isfinite(g))
     for j in range(2):
         assert (abs(fd[j, 5]) > 1e-3 * np.abs(fd[j]).max()) == bool(j), fd[j]

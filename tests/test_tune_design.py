@@ -12,9 +12,7 @@ import pytest
 from hdjax import _bench
 from hdjax import _loopshape as ls
 from hdjax._control import TorqueGains, sine_reference, step_reference
-
 from helpers import hd1
-
 
 jax.config.update("jax_enable_x64", True)
 

@@ -1214,7 +1214,7 @@ class Bench:
         sub, fr = self.sub, self.fine_rate
         ns = K * sub
         icmd = np.zeros((ns, B))
-        st, sens, real = self.station, self.bench["sensors"], self.bench["realised"]
+        sens, real = self.bench["sensors"], self.bench["realised"]
         mags = {e: np.full(B, float(self.magnitudes.get(e, 0.0))) for e in EFFECTS}
         t0 = getattr(self, "session_end", 0.0) if start_time is None else float(start_time)
         rng = _rng(seed, "closed-loop-noise")

@@ -45,19 +45,17 @@ HD2's measurement noise and sensor ripple in the loop the unrefined 2- and 16-su
 up (bench cost 1.6 instead of 0.03 for the same PI), so it stays on; `refine=1` switches it off.
 """
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-import diffrax as dfx
-
 from ._effects import Effects
 from ._model import Drive, Parameters, Smoothing, _as_float, friction_torque
 from ._plant import _outputs, _vector_field
 from ._solver import Rodas3
-
 
 _REFINE_RTOL = 0.1  # relative part of the gross step-failure check (see the module doc)
 
@@ -73,6 +71,8 @@ class TorqueGains(eqx.Module):
     - `kj`: weight of the motor-inertia feed-forward $N\\hat J_{eff}\\,r/(J_L K_m)$ (-; 1 = the
       identified inertia): the current that accelerates the motor along with a free load of
       inertia $J_L$; zero with the output locked ($J_L = \\infty$).
+    - `kpf`, `kif`: multipliers of `kp` and `ki` with a free output (-; 1 = the same PI locked and
+      free): a two-mode gain schedule, since the controller knows whether the output is clamped.
     """
 
     kp: Float[Array, ""] = eqx.field(converter=_as_float)
@@ -81,13 +81,16 @@ class TorqueGains(eqx.Module):
     kr: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
     kf: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
     kj: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
+    kpf: Float[Array, ""] = eqx.field(converter=_as_float, default=1.0)
+    kif: Float[Array, ""] = eqx.field(converter=_as_float, default=1.0)
 
     def to_dict(self) -> dict[str, float]:
         return {k: float(getattr(self, k)) for k in GAIN_NAMES}
 
 
-GAIN_NAMES = ("kp", "ki", "kd", "kr", "kf", "kj")
-GAIN_UNITS = {"kp": "A/(N·m)", "ki": "A/(N·m·s)", "kd": "A·s/(N·m)", "kr": "-", "kf": "-", "kj": "-"}
+GAIN_NAMES = ("kp", "ki", "kd", "kr", "kf", "kj", "kpf", "kif")
+GAIN_UNITS = {"kp": "A/(N·m)", "ki": "A/(N·m·s)", "kd": "A·s/(N·m)", "kr": "-", "kf": "-", "kj": "-", "kpf": "-",
+              "kif": "-"}  # fmt: skip
 
 
 class TorqueController(eqx.Module):
@@ -315,6 +318,8 @@ def closed_loop(
     a = jnp.exp(-ts / controller.derivative_filter)
     # N·Jeff/J_L (1/(m·...)): motor-side inertia torque per N·m of free output torque; 0 when locked
     inertia_ff = reference.free * N * controller.friction.Jeff / controller.drive.load_inertia
+    kp = gains.kp * (1.0 + reference.free * (gains.kpf - 1.0))
+    ki = gains.ki * (1.0 + reference.free * (gains.kif - 1.0))
 
     def law(state, r_k, y_meas, w_meas):
         integ, dfilt, y_prev, first = state
@@ -326,9 +331,9 @@ def closed_loop(
             + gains.kj * inertia_ff * r_k / Km
             + gains.kf * friction_torque(controller.friction, w_meas, ff_smoothing) / Km
         )
-        u = ff + gains.kp * e + integ - gains.kd * dfilt
+        u = ff + kp * e + integ - gains.kd * dfilt
         i = smooth_saturation(u, controller.current_limit, controller.saturation_scale)
-        integ = integ + gains.ki * ts * e + controller.anti_windup * (i - u)
+        integ = integ + ki * ts * e + controller.anti_windup * (i - u)
         return (integ, dfilt, y_meas, jnp.zeros(())), i, u
 
     zero = jnp.zeros(())
@@ -435,22 +440,24 @@ def tracking_rms(traj: LoopTrajectory) -> Float[Array, ""]:
 class GainScaling(eqx.Module):
     """Map between the optimiser's unconstrained, O(1) vector θ and `TorqueGains`:
     $k_p = k_{p0}e^{\\theta_0}$, $k_i = k_{i0}e^{\\theta_1}$ (kept positive),
-    $k_d = k_{p0}\\,T_d\\,\\theta_2$, $k_r = \\theta_3$, $k_f = \\theta_4$, $k_j = \\theta_5$."""
+    $k_d = k_{p0}\\,T_d\\,\\theta_2$, $k_r = \\theta_3$, $k_f = \\theta_4$, $k_j = \\theta_5$,
+    $k_{pf} = e^{\\theta_6}$, $k_{if} = e^{\\theta_7}$."""
 
     kp0: float
     ki0: float
     derivative_time: float
 
-    def gains(self, theta: Float[Array, " 6"]) -> TorqueGains:
+    def gains(self, theta: Float[Array, " 8"]) -> TorqueGains:
         return TorqueGains(
             kp=self.kp0 * jnp.exp(theta[0]), ki=self.ki0 * jnp.exp(theta[1]),
             kd=self.kp0 * self.derivative_time * theta[2], kr=theta[3], kf=theta[4], kj=theta[5],
+            kpf=jnp.exp(theta[6]), kif=jnp.exp(theta[7]),
         )  # fmt: skip
 
-    def theta(self, g: TorqueGains) -> Float[Array, " 6"]:
+    def theta(self, g: TorqueGains) -> Float[Array, " 8"]:
         return jnp.stack([
             jnp.log(g.kp / self.kp0), jnp.log(g.ki / self.ki0), g.kd / (self.kp0 * self.derivative_time), g.kr, g.kf,
-            g.kj,
+            g.kj, jnp.log(g.kpf), jnp.log(g.kif),
         ])  # fmt: skip
 
 
@@ -615,15 +622,19 @@ def numpy_torque_law(gains: list[TorqueGains], controller: TorqueController, fre
     ff_sm = Smoothing(velocity_scale=controller.friction_scale)
     st = {"I": np.zeros(len(gains)), "d": np.zeros(len(gains)), "y": np.zeros(len(gains)), "first": 1.0}
 
+    fr = np.asarray(free, float)
+    kp = g["kp"] * (1.0 + fr * (g["kpf"] - 1.0))
+    ki = g["ki"] * (1.0 + fr * (g["kif"] - 1.0))
+
     def law(k, r, y, w):
         e = r - y
         st["d"] = a * st["d"] + (1.0 - a) * (1.0 - st["first"]) * (y - st["y"]) / ts
         Tf = np.asarray(friction_torque(controller.friction, jnp.asarray(w), ff_sm))
         ff = g["kr"] * r / (N * Km) + g["kj"] * inertia_ff * r / Km + g["kf"] * Tf / Km
-        u = ff + g["kp"] * e + st["I"] - g["kd"] * st["d"]
+        u = ff + kp * e + st["I"] - g["kd"] * st["d"]
         lim, s = controller.current_limit, controller.saturation_scale
         i = u - s * (np.logaddexp(0.0, (u - lim) / s) - np.logaddexp(0.0, (-u - lim) / s))
-        st["I"] = st["I"] + g["ki"] * ts * e + controller.anti_windup * (i - u)
+        st["I"] = st["I"] + ki * ts * e + controller.anti_windup * (i - u)
         st["y"], st["first"] = y, 0.0
         return i
 

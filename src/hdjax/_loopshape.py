@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ._model import Parameters, friction_torque, Smoothing
+from ._model import Parameters, Smoothing, friction_torque
 
 
 def damping_equivalent(alpha: float, Tst: float, rate_amplitude: float) -> float:

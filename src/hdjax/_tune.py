@@ -22,7 +22,9 @@ Steps (all SI units):
    Ziegler–Nichols PI (no feed-forward); (b) a model-based PI: MIGO (largest integral gain with
    sensitivity peak Ms ≤ `tune.model_pi_ms`) on the linearised sampled locked and free plants
    (`hdjax._loopshape`), with the model's reference, inertia and friction feed-forward.
-5. Robust tuning: plant parameter sets drawn from the per-experiment estimates; cost = tracking
+5. Robust tuning of kp, ki, kd, the feed-forward weights and a free-output gain schedule (kpf,
+   kif multiply kp, ki when the output is free): plant parameter sets drawn from the
+   per-experiment estimates; cost = tracking
    cost averaged over plants and references (`vmap`) + `tune.margin_weight`·Σ max(0, Ms − `tune.ms_max`)²
    over the linearised locked and free loops of every plant set. A start search over the baselines
    and scaled model-based PIs, then BFGS from the best `tune.starts` candidates (multi-start).
@@ -37,17 +39,18 @@ import json
 import math
 import pathlib
 import time
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
 import matplotlib
 import numpy as np
 
-
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from . import _loopshape as ls
+from ._config import section_options
 from ._control import (
     GAIN_NAMES,
     GAIN_UNITS,
@@ -66,13 +69,11 @@ from ._control import (
     tune_gains,
     ziegler_nichols_pi,
 )
-from ._config import section_options
-from ._progress import task
 from ._data import Dataset
 from ._effects import MODEL_FORM, PERIODIC, SCALAR, Effects
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, Parameters, Smoothing
-
+from ._progress import task
 
 DEFAULTS = {
     "fit": None,  # path to a fit.json (relative to the config file's folder is not resolved: give it absolute or cwd-relative)
@@ -316,8 +317,11 @@ def _linear_loops(params_list, drive, ref_info, ts, derivative_filter):
 def _margin_report(g: TorqueGains, z, P, sss, labels, ts, df) -> dict:
     rows = []
     for Pj, ss, lab in zip(P, sss, labels):
-        m = ls.margins(float(g.kp), float(g.ki), float(g.kd), z, Pj, ts=ts, derivative_filter=df)
-        m["stable"] = bool(ls.closed_loop_radius(float(g.kp), float(g.ki), float(g.kd), ss, ts=ts, derivative_filter=df) < 1.0)
+        free = lab.endswith("free")
+        kp = float(g.kp) * (float(g.kpf) if free else 1.0)
+        ki = float(g.ki) * (float(g.kif) if free else 1.0)
+        m = ls.margins(kp, ki, float(g.kd), z, Pj, ts=ts, derivative_filter=df)
+        m["stable"] = bool(ls.closed_loop_radius(kp, ki, float(g.kd), ss, ts=ts, derivative_filter=df) < 1.0)
         m["loop"] = lab
         rows.append(m)
     nominal = [r for r in rows if r["loop"].startswith("plant 0")]
@@ -412,8 +416,12 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     zj = jnp.asarray(z)
     ms_max, mw = float(opts["ms_max"]), float(opts["margin_weight"])
 
+    free_loop = jnp.asarray([lab.endswith("free") for lab in loop_labels])
+
     def margin_term(g):
-        ms = ls.sensitivity_peak(g, zj, Pj, ts=ts, derivative_filter=df)
+        per_loop = SimpleNamespace(kp=(g.kp * jnp.where(free_loop, g.kpf, 1.0))[:, None],
+                                   ki=(g.ki * jnp.where(free_loop, g.kif, 1.0))[:, None], kd=g.kd)  # fmt: skip
+        ms = ls.sensitivity_peak(per_loop, zj, Pj, ts=ts, derivative_filter=df)
         return mw * jnp.sum(jnp.maximum(ms - ms_max, 0.0) ** 2), ms
 
     def parts(g):
@@ -439,11 +447,13 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
             if fp == 1.0 and fi == 1.0:
                 continue
             cands.append((f"model_pi kp x{fp:g}, ki x{fi:g}", TorqueGains(kp=fp * kp_m, ki=fi * ki_m, kr=1.0, kf=1.0, kj=1.0)))
+    for ff in (0.5, 0.25):  # the same locked PI, a gentler free one (the torque sensor's noise acts on a small torque)
+        cands.append((f"model_pi, free kp, ki x{ff:g}", TorqueGains(kp=kp_m, ki=ki_m, kr=1.0, kf=1.0, kj=1.0, kpf=ff, kif=ff)))
     search = []
     with task(log, "start search (baselines and scaled model-based PIs)", len(cands), unit="candidates") as bar:
         for name, g in cands:
             c = total(g)
-            stable = all(ls.closed_loop_radius(float(g.kp), float(g.ki), float(g.kd), ss, ts=ts, derivative_filter=df) < 1.0 for ss in sss)
+            stable = _margin_report(g, z, Pall, sss, loop_labels, ts, df)["all_stable"]
             search.append({"name": name, "gains": g.to_dict(), "cost": c, "linear_stable": bool(stable)})
             bar.advance(1, info=f"{name}: {c:.5g}")
     timing["start_search"] = time.time() - t0
