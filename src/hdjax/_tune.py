@@ -87,7 +87,8 @@ DEFAULTS = {
     "headroom": 0.7,  # feed-forward current of a scaled reference / current limit
     "plants": 6,  # plant parameter sets drawn for the robust cost
     "seed": 0,
-    "max_steps": 7,  # BFGS steps per start
+    "max_steps": 8,  # BFGS steps per start
+    "max_first_step": 0.05,  # cap of the (start-cost-normalised) gradient norm: BFGS's first trial step in log-gains
     "starts": 2,  # BFGS runs from the best candidates of the start search
     "start_factors": [0.5, 1.0, 2.0],  # kp, ki multiples of the model-based PI tried (grid) before BFGS
     "ms_max": 1.7,  # sensitivity peak above which the margin term acts
@@ -108,7 +109,7 @@ LABELS = {"relay_zn": "relay + Ziegler–Nichols PI", "model_pi": "model-based P
 def _options(config: dict) -> dict:
     out = section_options(config, "tune", DEFAULTS)
     for k in ("duration", "locked_fraction", "free_fraction", "locked_sine_hz", "free_sine_hz", "relay_amplitude",
-              "headroom", "ms_max", "model_pi_ms"):  # fmt: skip
+              "headroom", "ms_max", "model_pi_ms", "max_first_step"):  # fmt: skip
         if not isinstance(out[k], (int, float)) or out[k] <= 0:
             raise ValueError(f"config `tune.{k}` must be a positive number, got {out[k]!r}.")
     if not isinstance(out["margin_weight"], (int, float)) or out["margin_weight"] < 0:
@@ -466,7 +467,7 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     n_bfgs = int(opts["max_steps"]) * len(starts)
     with task(log, f"BFGS from {len(starts)} start(s)", n_bfgs, unit="iterations") as bar:
         res = tune_gains(starts, cost_fn, scaling=scaling, max_steps=int(opts["max_steps"]), log=log,
-                         cost_scale=float(search[picked[0]]["cost"]),
+                         cost_scale=float(search[picked[0]]["cost"]), max_gradient=float(opts["max_first_step"]),
                          progress=lambda k, f: bar.advance(1, info=f"cost {f:.5g}"))  # fmt: skip
     timing["bfgs"] = time.time() - t0
     tuned = res.gains
