@@ -300,6 +300,7 @@ def diagnose(
     per_record_noise: bool = True,
     misfit_scaling: bool = True,
     min_improved_fraction: float = 0.75,
+    reuse_jacobian: bool = True,
     simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8),
     jacobian_rtol: float = 1e-5,
     log=lambda *_: None,
@@ -320,7 +321,8 @@ def diagnose(
     of every (experiment, channel) by its RMS under the current model where that exceeds 1 (misfit
     the model cannot explain counts as noise of that record, so no record's misfit dominates the
     screening); `min_improved_fraction` of the held-out experiments of the mode where a candidate
-    acts must improve.
+    acts must improve. `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
+    (re-whitened by their own noise model), computing only columns not seen yet.
 
     **Returns:** a `Diagnosis` with findings (most important first), evidence, the extended model,
     stage timings (s) and simulated torque traces for the figures.
@@ -361,7 +363,7 @@ def diagnose(
                              1e-3 * float(np.max(np.abs(np.asarray(batch.current)[m])))),
         "torsion": float(np.max(np.abs(np.asarray(batch.torque)[m]))) / float(p_base.K1) or 1e-3,
         "torque_max": float(np.max(np.abs(np.asarray(batch.torque)[m]))),
-        "dt": float(batch.time[0, 1] - batch.time[0, 0]),
+        "dt": float(np.median(np.diff(np.asarray(batch.time[0])[m[0]]))),
         "session_span": float(np.max(np.asarray(batch.start_time)) + np.max(np.asarray(batch.time))),
     }
     cols = _all_columns(ctx)
@@ -394,16 +396,27 @@ def diagnose(
         sig_exp[:, 2] = np.where(modes == "free", sig_exp[:, 2], float(sigma[2]))
     noise_model: _NoiseModel | None = None  # set in each round: every residual and Jacobian is whitened by it
 
-    def jacobian(z, sel):
-        t1 = time.perf_counter()
-        n_t = -(-len(sel) // 8) * 8  # padded to a multiple of 8: few compiled shapes across datasets
-        E = np.zeros((n_t, len(z)))
-        E[np.arange(len(sel)), sel] = 1.0
-        _, J = jac_prob.jacobian(jnp.asarray(z), jnp.asarray(E), p_base, batch, jnp.asarray(sig_exp))
-        J = np.array(J)[..., : len(sel)]
+    jac_cache: dict[int, np.ndarray] = {}  # column → unwhitened Jacobian column (exp, channel, time)
+
+    def jacobian(z, sel, *, reuse=False):
+        """Whitened Jacobian columns `sel` at z. With `reuse`, columns computed in an earlier round
+        are taken from the cache (a chord Jacobian: it sets Gauss–Newton directions and screening
+        predictions only; every accepted step and held-out figure is simulated) and only missing
+        ones are computed; a refinement that keeps gaining asks for a fresh one."""
+        need = [j for j in sel if not (reuse and j in jac_cache)]
+        if need:
+            t1 = time.perf_counter()
+            n_t = -(-len(need) // 8) * 8  # padded to a multiple of 8: few compiled shapes across datasets
+            E = np.zeros((n_t, len(z)))
+            E[np.arange(len(need)), need] = 1.0
+            _, Jn = jac_prob.jacobian(jnp.asarray(z), jnp.asarray(E), p_base, batch, jnp.asarray(sig_exp))
+            Jn = np.array(Jn)
+            for k, j in enumerate(need):
+                jac_cache[j] = Jn[..., k]
+            timing["jacobians"] += time.perf_counter() - t1
+        J = np.stack([jac_cache[j] for j in sel], axis=-1)
         if noise_model is not None:
             J = noise_model.whiten(J)
-        timing["jacobians"] += time.perf_counter() - t1
         return J
 
     def simulate_each(zs, data=batch):
@@ -424,17 +437,15 @@ def diagnose(
     remaining = list(candidates)
     base_res = None
     r_cur, r_raw = simulate_each(np.tile(z_cur, (n_exp, 1)))
-    for rnd in range(max_findings + 1 + (1 if model_form else 0)):
-        # round 0 screens the base model's own assumptions (model_form); every significant one is
-        # adopted before any effect is screened, so that effects are judged against a base model
-        # that describes this bench as far as its form allows
-        form_round = rnd == 0 and bool(model_form)
-        pool = model_form if form_round else remaining
-        if not pool:
+    for rnd in range(max_findings + 1):
+        # round 0 first screens the base model's own assumptions (model_form) and adopts every
+        # significant one, then screens the effects against that base model, with the same Jacobian
+        stages = ("model_form", "effects") if rnd == 0 and model_form else ("effects",)
+        if not remaining:
             break
         chosen_idx = [j for c in adopted + chosen for j in cand_idx[c]]
         active = list(range(n_base)) + chosen_idx
-        sel = active + [j for c in pool for j in cand_idx[c]]
+        sel = active + [j for c in (model_form if rnd == 0 else []) + remaining for j in cand_idx[c]]
         col_of = {j: k for k, j in enumerate(sel)}
         # One Jacobian per round (w.r.t. the base, the accepted effects and every candidate), at the
         # current model. It refines base + accepted effects by chord Gauss–Newton steps with
@@ -467,7 +478,7 @@ def diagnose(
                         rho[e, c] = max(1.0, float(np.sqrt(np.mean(v**2))))
             noise_model = dataclasses.replace(noise_model, s=noise_model.s * rho)
         r_cur = noise_model.whiten(r_raw)
-        J = jacobian(z_cur, sel)
+        J = jacobian(z_cur, sel, reuse=reuse_jacobian and rnd > 0)
         if rnd == 0:
             ratio, raw_rms, white_rms = {}, {}, {}
             for md in ("constrained", "free"):
@@ -519,141 +530,147 @@ def diagnose(
                 break
         base_cols = list(range(n_base))
 
-        # normal equations per experiment: a fold's fit sums those of its training experiments
-        Jf = J.reshape(n_exp, -1, J.shape[-1])
-        A_exp = np.einsum("eti,etj->eij", Jf, Jf)
-        b_exp = np.einsum("eti,et->ei", Jf, r_cur.reshape(n_exp, -1))
+        stop = False
+        for stage in stages:
+            form_round = stage == "model_form"
+            pool = model_form if form_round else remaining
+            # normal equations per experiment: a fold's fit sums those of its training experiments
+            Jf = J.reshape(n_exp, -1, J.shape[-1])
+            A_exp = np.einsum("eti,etj->eij", Jf, Jf)
+            b_exp = np.einsum("eti,et->ei", Jf, r_cur.reshape(n_exp, -1))
 
-        def fold_steps(idx):
-            """Per-experiment parameter vectors: experiment j gets the Gauss–Newton fit of the base
-            parameters and the columns `idx` on the fold that does not contain j (so an effect
-            confounded with K1, Tst or the friction is judged after they re-adjust, as in a full
-            re-fit); plus the linearised prediction of its residual."""
-            zs = np.tile(z_cur, (n_exp, 1))
-            pred = r_cur.copy()
-            cols_ = base_cols + list(idx)
-            k = [col_of[j] for j in cols_]
-            A = A_exp[:, k][:, :, k]
-            b = b_exp[:, k]
-            for f in (0, 1):
-                test = folds == f
-                delta = _solve_normal(A[~test].sum(0), b[~test].sum(0))
-                zs[np.ix_(test, cols_)] += delta
-                pred[test] = r_cur[test] + J[test][..., k] @ delta
-            return zs, pred
+            def fold_steps(idx):
+                """Per-experiment parameter vectors: experiment j gets the Gauss–Newton fit of the base
+                parameters and the columns `idx` on the fold that does not contain j (so an effect
+                confounded with K1, Tst or the friction is judged after they re-adjust, as in a full
+                re-fit); plus the linearised prediction of its residual."""
+                zs = np.tile(z_cur, (n_exp, 1))
+                pred = r_cur.copy()
+                cols_ = base_cols + list(idx)
+                k = [col_of[j] for j in cols_]
+                A = A_exp[:, k][:, :, k]
+                b = b_exp[:, k]
+                for f in (0, 1):
+                    test = folds == f
+                    delta = _solve_normal(A[~test].sum(0), b[~test].sum(0))
+                    zs[np.ix_(test, cols_)] += delta
+                    pred[test] = r_cur[test] + J[test][..., k] @ delta
+                return zs, pred
 
-        def fold_sse(res):
-            return np.array([np.sum(res[folds == f] ** 2) for f in (0, 1)])
+            def fold_sse(res):
+                return np.array([np.sum(res[folds == f] ** 2) for f in (0, 1)])
 
-        zs_before, pred_before = fold_steps(chosen_idx)
-        res_before, raw_before = simulate_each(zs_before)
-        if base_res is None:
-            base_res = raw_before
-        sse_before = fold_sse(res_before)
-        e_before = per_exp(res_before)
-        # screen every candidate by the linearised held-out error, then simulate the most promising
-        predicted = {}
-        for c in pool:
-            _, pred = fold_steps(chosen_idx + cand_idx[c])
-            predicted[c] = 1.0 - fold_sse(pred).sum() / fold_sse(pred_before).sum()
-        order = sorted(pool, key=lambda c: -predicted[c])
-        scores, raw_after_of = {}, {}
-        for c in order:
-            s = {"predicted_gain": float(predicted[c]), "k": len(cand_idx[c]), "simulated": False}
-            if len(raw_after_of) < (len(pool) if form_round else confirm_top) and predicted[c] > 0.5 * min_relative_gain:
-                zs, _ = fold_steps(chosen_idx + cand_idx[c])
-                res_after, raw_after = simulate_each(zs)
-                sse_after = fold_sse(res_after)
-                gain = 1.0 - sse_after.sum() / sse_before.sum()
-                dchi = float(sse_before.sum() - sse_after.sum())
-                d = e_before - per_exp(res_after)
-                # reported, not decisive (see the module docstring): how much the held-out
-                # experiments it makes worse lose, over what those it improves gain
-                harm = float(np.sum(np.maximum(-d, 0.0)) / max(np.sum(np.maximum(d, 0.0)), 1e-300))
-                # and not resting on one experiment: without the held-out experiment that gains
-                # most, the rest must still gain beyond the chance level
-                chance = 10.0 * s["k"] + 50.0
-                dchi_rest = float(np.sum(d) - np.max(d))
-                # effect size where the effect acts: an effect of the locked tests only (stiffness)
-                # is not diluted by the free-motion channels, and vice versa
-                mode_gains = {md: float(np.sum(d[modes == md]) / np.sum(e_before[modes == md]))
-                              for md in ("constrained", "free") if np.any(modes == md)}
-                # and a term that makes one kind of test worse beyond chance explains no drive: a
-                # spurious order-1 kinematic error fitted to locked tests loses on the free ones
-                mode_dchi = {md: float(np.sum(d[modes == md])) for md in mode_gains}
-                # consistency over records: most held-out experiments of the mode where it acts
-                # must improve (misfit that one term absorbs in a few records is no finding)
-                acting = max(mode_gains, key=mode_gains.get)
-                improved = float(np.mean(d[modes == acting] > 0))
-                s.update(simulated=True, gain=float(gain), fold_gains=(1 - sse_after / sse_before).tolist(), delta_chi2=dchi,
-                         delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
-                         harm_ratio=harm, per_experiment_gain=(d / e_before).tolist(),
-                         mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
-                         significant=bool(np.all(sse_after < sse_before) and max(mode_gains.values()) > min_relative_gain
-                                          and dchi > chance and dchi_rest > chance
-                                          and min(mode_dchi.values()) > -chance
-                                          and improved >= min_improved_fraction))
-                raw_after_of[c] = raw_after
-            else:
-                s.update(gain=float(predicted[c]), significant=False)
-            scores[c] = s
-            log(f"  {c:30s} held-out gain {'simulated' if s['simulated'] else 'predicted'} {s['gain']:+.3f}"
-                + (f" (folds {np.round(s['fold_gains'], 3).tolist()}, modes "
-                   + ", ".join(f"{k} {v:+.3f}" for k, v in s["mode_gains"].items())
-                   + f", harm ratio {s['harm_ratio']:.2f})" if s["simulated"] else "")
-                + (" significant" if s["significant"] else ""))
-            if s["simulated"]:
-                log("    per held-out experiment: " + " ".join(f"{100 * g:+.0f}" for g in s["per_experiment_gain"]) + " % of whitened SSE " + " ".join(f"{v:.0f}" for v in e_before))
-        rounds.append(scores)
-        sig = [c for c in scores if scores[c]["significant"]]
-        if not sig:
+            zs_before, pred_before = fold_steps(chosen_idx)
+            res_before, raw_before = simulate_each(zs_before)
+            if base_res is None:
+                base_res = raw_before
+            sse_before = fold_sse(res_before)
+            e_before = per_exp(res_before)
+            # screen every candidate by the linearised held-out error, then simulate the most promising
+            predicted = {}
+            for c in pool:
+                _, pred = fold_steps(chosen_idx + cand_idx[c])
+                predicted[c] = 1.0 - fold_sse(pred).sum() / fold_sse(pred_before).sum()
+            order = sorted(pool, key=lambda c: -predicted[c])
+            scores, raw_after_of = {}, {}
+            for c in order:
+                s = {"predicted_gain": float(predicted[c]), "k": len(cand_idx[c]), "simulated": False}
+                if len(raw_after_of) < (len(pool) if form_round else confirm_top) and predicted[c] > 0.5 * min_relative_gain:
+                    zs, _ = fold_steps(chosen_idx + cand_idx[c])
+                    res_after, raw_after = simulate_each(zs)
+                    sse_after = fold_sse(res_after)
+                    gain = 1.0 - sse_after.sum() / sse_before.sum()
+                    dchi = float(sse_before.sum() - sse_after.sum())
+                    d = e_before - per_exp(res_after)
+                    # reported, not decisive (see the module docstring): how much the held-out
+                    # experiments it makes worse lose, over what those it improves gain
+                    harm = float(np.sum(np.maximum(-d, 0.0)) / max(np.sum(np.maximum(d, 0.0)), 1e-300))
+                    # and not resting on one experiment: without the held-out experiment that gains
+                    # most, the rest must still gain beyond the chance level
+                    chance = 10.0 * s["k"] + 50.0
+                    dchi_rest = float(np.sum(d) - np.max(d))
+                    # effect size where the effect acts: an effect of the locked tests only (stiffness)
+                    # is not diluted by the free-motion channels, and vice versa
+                    mode_gains = {md: float(np.sum(d[modes == md]) / np.sum(e_before[modes == md]))
+                                  for md in ("constrained", "free") if np.any(modes == md)}
+                    # and a term that makes one kind of test worse beyond chance explains no drive: a
+                    # spurious order-1 kinematic error fitted to locked tests loses on the free ones
+                    mode_dchi = {md: float(np.sum(d[modes == md])) for md in mode_gains}
+                    # consistency over records: most held-out experiments of the mode where it acts
+                    # must improve (misfit that one term absorbs in a few records is no finding)
+                    acting = max(mode_gains, key=mode_gains.get)
+                    improved = float(np.mean(d[modes == acting] > 0))
+                    s.update(simulated=True, gain=float(gain), fold_gains=(1 - sse_after / sse_before).tolist(), delta_chi2=dchi,
+                             delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
+                             harm_ratio=harm, per_experiment_gain=(d / e_before).tolist(),
+                             mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
+                             significant=bool(np.all(sse_after < sse_before) and max(mode_gains.values()) > min_relative_gain
+                                              and dchi > chance and dchi_rest > chance
+                                              and min(mode_dchi.values()) > -chance
+                                              and improved >= min_improved_fraction))
+                    raw_after_of[c] = raw_after
+                else:
+                    s.update(gain=float(predicted[c]), significant=False)
+                scores[c] = s
+                log(f"  {c:30s} held-out gain {'simulated' if s['simulated'] else 'predicted'} {s['gain']:+.3f}"
+                    + (f" (folds {np.round(s['fold_gains'], 3).tolist()}, modes "
+                       + ", ".join(f"{k} {v:+.3f}" for k, v in s["mode_gains"].items())
+                       + f", harm ratio {s['harm_ratio']:.2f})" if s["simulated"] else "")
+                    + (" significant" if s["significant"] else ""))
+                if s["simulated"]:
+                    log("    per held-out experiment: " + " ".join(f"{100 * g:+.0f}" for g in s["per_experiment_gain"]) + " % of whitened SSE " + " ".join(f"{v:.0f}" for v in e_before))
+            rounds.append(scores)
+            sig = [c for c in scores if scores[c]["significant"]]
+            if not sig:
+                if form_round:
+                    continue
+                stop = True
+                break
             if form_round:
+                for c in sorted(sig, key=lambda c: -scores[c]["gain"]):
+                    s = scores[c]
+                    form_items.append({
+                        "assumption": c,
+                        "gain": {"heldout_nrmse_before": _channel_nrmse(raw_before, sig_exp, batch, m),
+                                 "heldout_nrmse_after": _channel_nrmse(raw_after_of[c], sig_exp, batch, m) if c in raw_after_of else None,
+                                 "relative_reduction": s["gain"], "fold_reductions": s["fold_gains"],
+                                 "mode_reductions": s["mode_gains"], "improved_fraction": s["improved_fraction"]},
+                        "_round": len(rounds) - 1,
+                    })
+                accept = sorted(sig, key=lambda c: -scores[c]["gain"])
+            else:
+                accept = [max(sig, key=lambda c: scores[c]["gain"])]
+            # accept: start the new terms at their all-experiment GN fit (their columns only); the next
+            # round's refinement re-fits base and effects jointly
+            new_cols = [j for c in accept for j in cand_idx[c]]
+            z_try = z_cur.copy()
+            z_try[new_cols] += _gn_step(r_cur, J, all_rows, [col_of[j] for j in new_cols])
+            r_try, raw_try = simulate_each(np.tile(z_try, (n_exp, 1)))
+            if float(np.sum(r_try**2)) < float(np.sum(r_cur**2)):
+                z_cur, r_cur, r_raw = z_try, r_try, raw_try
+            log(f"  accepted {', '.join(accept)}")
+            if form_round:
+                adopted.extend(accept)
+                chosen_idx = [j for c in adopted + chosen for j in cand_idx[c]]
                 continue
-            break
-        if form_round:
-            for c in sorted(sig, key=lambda c: -scores[c]["gain"]):
-                s = scores[c]
-                form_items.append({
-                    "assumption": c,
-                    "gain": {"heldout_nrmse_before": _channel_nrmse(raw_before, sig_exp, batch, m),
-                             "heldout_nrmse_after": _channel_nrmse(raw_after_of[c], sig_exp, batch, m) if c in raw_after_of else None,
-                             "relative_reduction": s["gain"], "fold_reductions": s["fold_gains"],
-                             "mode_reductions": s["mode_gains"], "improved_fraction": s["improved_fraction"]},
-                    "_round": len(rounds) - 1,
-                })
-            accept = sorted(sig, key=lambda c: -scores[c]["gain"])
-        else:
-            accept = [max(sig, key=lambda c: scores[c]["gain"])]
-        # accept: start the new terms at their all-experiment GN fit (their columns only); the next
-        # round's refinement re-fits base and effects jointly
-        new_cols = [j for c in accept for j in cand_idx[c]]
-        z_try = z_cur.copy()
-        z_try[new_cols] += _gn_step(r_cur, J, all_rows, [col_of[j] for j in new_cols])
-        r_try, raw_try = simulate_each(np.tile(z_try, (n_exp, 1)))
-        if float(np.sum(r_try**2)) < float(np.sum(r_cur**2)):
-            z_cur, r_cur, r_raw = z_try, r_try, raw_try
-        log(f"  accepted {', '.join(accept)}")
-        if form_round:
-            adopted.extend(accept)
-            continue
-        best = accept[0]
-        chosen.append(best)
-        s = scores[best]
-        before_n = _channel_nrmse(raw_before, sig_exp, batch, m)
-        after_n = _channel_nrmse(raw_after_of[best], sig_exp, batch, m)
-        conf = float(1.0 - stats.chi2.sf(max(s["delta_chi2"], 0.0), s["k"])) if s["delta_chi2"] > 0 else 0.0
-        findings.append({
-            "effect": best,
-            "confidence": round(conf, 4),
-            "gain": {"heldout_nrmse_before": before_n, "heldout_nrmse_after": after_n,
-                     "relative_reduction": s["gain"], "fold_reductions": s["fold_gains"],
-                     "mode_reductions": s["mode_gains"],
-                     "heldout_weighted_sse_reduction": s["delta_chi2"],
-                     "mode_weighted_sse_reductions": s["mode_delta_chi2"], "harm_ratio": s["harm_ratio"]},
-            "_round": len(rounds) - 1,
-        })
-        remaining.remove(best)
-        if len(chosen) >= max_findings:
+            best = accept[0]
+            chosen.append(best)
+            s = scores[best]
+            before_n = _channel_nrmse(raw_before, sig_exp, batch, m)
+            after_n = _channel_nrmse(raw_after_of[best], sig_exp, batch, m)
+            conf = float(1.0 - stats.chi2.sf(max(s["delta_chi2"], 0.0), s["k"])) if s["delta_chi2"] > 0 else 0.0
+            findings.append({
+                "effect": best,
+                "confidence": round(conf, 4),
+                "gain": {"heldout_nrmse_before": before_n, "heldout_nrmse_after": after_n,
+                         "relative_reduction": s["gain"], "fold_reductions": s["fold_gains"],
+                         "mode_reductions": s["mode_gains"],
+                         "heldout_weighted_sse_reduction": s["delta_chi2"],
+                         "mode_weighted_sse_reductions": s["mode_delta_chi2"], "harm_ratio": s["harm_ratio"]},
+                "_round": len(rounds) - 1,
+            })
+            remaining.remove(best)
+        if stop or len(chosen) >= max_findings:
             break
 
     current_p = pmap.to_params(jnp.asarray(z_cur[:n_base]), p_base)
@@ -709,18 +726,24 @@ def _spectral_peaks(batch, traj, m, modes, sigma):
         for c, ch in enumerate(res):
             if ch == "output_position" and md == "constrained":
                 continue
-            r = np.concatenate([res[ch][i][m[i]] for i in sel])
+            # every record scaled to unit residual RMS before pooling, so that the records the base
+            # model misfits most (a bench is never exactly the model) do not decide the spectrum
+            rms = [max(float(np.sqrt(np.mean(res[ch][i][m[i]] ** 2))), float(sigma[c])) for i in sel]
+            r = np.concatenate([res[ch][i][m[i]] / s_ for i, s_ in zip(sel, rms)])
             t = np.concatenate([th[i][m[i]] for i in sel])
             amp = _order_spectrum(r, t)
-            spectra[f"{md}/{ch}"] = amp.tolist()
-            noise_amp = 2.0 * float(sigma[c]) / math.sqrt(len(r))  # std of a fitted sine amplitude
+            amp_si = _order_spectrum(np.concatenate([res[ch][i][m[i]] for i in sel]), t)
+            spectra[f"{md}/{ch}"] = amp_si.tolist()  # SI units (N·m, rad/s, rad)
+            spectra[f"{md}/{ch} (per-record normalised)"] = amp.tolist()
+            rel = np.concatenate([np.full(int(m[i].sum()), float(sigma[c]) / s_) for i, s_ in zip(sel, rms)])
+            noise_amp = 2.0 * float(np.sqrt(np.mean(rel**2))) / math.sqrt(len(r))  # std of a fitted sine amplitude
             thr = max(6.0 * noise_amp, 3.0 * float(np.median(amp)))
             # an order counts only where the experiments turn the wave generator through at least
             # one of its cycles (median over experiments): over a fraction of a cycle a smooth
             # residual projects onto any low order (locked tests turn it by well under a turn)
             cycles = np.arange(1, MAX_ORDER + 1) * float(np.median(span[sel])) / (2.0 * math.pi)
             for k in np.where((amp > thr) & (cycles >= 1.0))[0]:
-                peaks.append((f"{md}/{ch}", int(k) + 1, float(amp[k]), thr))
+                peaks.append((f"{md}/{ch}", int(k) + 1, float(amp[k]), thr, float(amp_si[k])))
     return spectra, peaks
 
 
@@ -730,7 +753,7 @@ def _evidence(batch, traj, m, modes, sigma):
     res_w = (np.asarray(traj.motor_velocity) - np.asarray(batch.motor_velocity))
     # the strongest peaks first (amplitude over threshold), at most three orders
     peaks = []
-    for _, k, a, thr in sorted(peak_list, key=lambda x: -x[2] / x[3]):
+    for _, k, a, thr, _ in sorted(peak_list, key=lambda x: -x[2] / x[3]):
         if k not in peaks:
             peaks.append(k)
     orders = sorted(peaks[:3]) or [1, 2]
@@ -752,7 +775,8 @@ def _evidence(batch, traj, m, modes, sigma):
             cov[md][name] = {ch: (float(np.corrcoef(x, r)[0, 1]) if np.std(x) > 0 and np.std(r) > 0 else 0.0)
                              for ch, r in (("torque", rT), ("motor_velocity", rw))}
     return {"order_spectra": spectra, "candidate_orders": orders, "correlations": cov,
-            "spectral_peaks": [{"where": w, "order": k, "amplitude": a, "threshold": t} for w, k, a, t in peak_list]}, orders
+            "spectral_peaks": [{"where": w, "order": k, "amplitude": a_si, "normalised_amplitude": a, "threshold": t}
+                               for w, k, a, t, a_si in peak_list]}, orders
 
 
 def _unexplained(batch, traj, m, modes, sigma, r_meas, r_white) -> list[dict]:
@@ -761,10 +785,11 @@ def _unexplained(batch, traj, m, modes, sigma, r_meas, r_white) -> list[dict]:
     same whitened by the noise model, unit RMS where only sensor and process noise are left)."""
     out = []
     _, left = _spectral_peaks(batch, traj, m, modes, sigma)
-    for where, k, a, thr in sorted(left, key=lambda x: -x[2] / x[3])[:5]:
+    for where, k, a, thr, a_si in sorted(left, key=lambda x: -x[2] / x[3])[:5]:
         out.append({"description": f"{where.replace('/', ' ')} residual periodic at order {k} per wave-generator turn",
-                    "evidence": f"order-{k} amplitude {a:.3g} against a detection threshold of {thr:.3g}; no candidate "
-                                f"effect at this order gave a significant held-out gain"})
+                    "evidence": f"order-{k} amplitude {a_si:.3g} (SI units; {a:.3g} of the per-record residual RMS against a "
+                                f"detection threshold of {thr:.3g}); no candidate effect at this order gave a "
+                                "significant held-out gain"})
     for md in ("constrained", "free"):
         sel = modes == md
         if not sel.any():

@@ -277,8 +277,12 @@ def simulate(
     if "rate_independent_hysteresis" in effects.active:
         y0 = y0 + (jnp.zeros_like(y0[0]),)
     geometry = (y0[0], y0[2], th_m0)
-    current = UniformLinearInput(exp.time[0], exp.time[1] - exp.time[0], exp.current)
-    dt = exp.time[1] - exp.time[0]
+    # the mean sample step over the valid samples: time stamps may jitter (SPEC §2 allows up to 1 %
+    # of the step), and one jittered first step would stretch the whole input's time axis
+    n_valid = jnp.sum(exp.mask)
+    t_last = exp.time[jnp.maximum(n_valid - 1, 1)]
+    dt = (t_last - exp.time[0]) / jnp.maximum(n_valid - 1, 1)
+    current = UniformLinearInput(exp.time[0], dt, exp.current)
     if simulator.fixed_step is not None:
         controller = dfx.ConstantStepSize()
         dt0 = simulator.fixed_step
