@@ -37,6 +37,9 @@ EFFECTS = [
     "lost_motion", "load_dependent_friction", "thermal_drift", "input_delay", "rate_independent_hysteresis",
 ]  # fmt: skip
 PERIODIC = {"kinematic_error", "torque_sensor_ripple", "cogging", "position_dependent_friction"}
+# the size of a hidden effect is its RMS change in torque or motor velocity over the sensor noise
+# (the output encoder's quantisation noise is far below what the current's noise does to position)
+CHANNELS = ("torque", "motor_velocity")
 PAIRS = [("torque_sensor_ripple", "load_dependent_friction"), ("kinematic_error", "thermal_drift")]
 
 
@@ -53,13 +56,13 @@ def plan(n: int, first: int) -> list[dict]:
         elif j in (5, 12):
             effects = {}
             for name in PAIRS[(j // 7) % 2]:
-                effects[name] = {"snr": float(rng.uniform(3, 6))}
+                effects[name] = {"snr": float(rng.uniform(3, 6)), "channels": list(CHANNELS)}
                 if name in PERIODIC:
                     effects[name]["orders"] = [int(rng.integers(1, 5))]
         else:
             name = EFFECTS[k % len(EFFECTS)]
             k += 1
-            effects = {name: {"snr": float(rng.uniform(3, 6))}}
+            effects = {name: {"snr": float(rng.uniform(3, 6)), "channels": list(CHANNELS)}}
             if name in PERIODIC:
                 effects[name]["orders"] = [int(rng.integers(1, 5))]
         if j >= first:

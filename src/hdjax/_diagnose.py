@@ -293,7 +293,7 @@ def diagnose(
     base_free=DEFAULT_FREE,
     base_steps: int = 5,
     max_findings: int = 3,
-    min_relative_gain: float = 0.03,
+    min_relative_gain: float = 0.05,
     refine_steps: int = 4,
     refine_jacobians: int = 3,
     confirm_top: int = 2,

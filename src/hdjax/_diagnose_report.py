@@ -28,7 +28,7 @@ DEFAULTS = {
     "model_form": list(MODEL_FORM_NAMES),  # SPEC §4b base-model assumptions screened first
     "base_steps": 5,  # LM steps refining the base model
     "max_findings": 3,
-    "min_relative_gain": 0.03,  # held-out whitened-SSE reduction a finding needs
+    "min_relative_gain": 0.05,  # held-out (misfit-scaled, whitened) SSE reduction where a finding acts
     "rtol": 1e-6,  # ODE tolerance of every simulation
     "per_record_noise": True,  # weigh every experiment by its own sensor-noise level
     "misfit_scaling": True,  # scale each (experiment, channel) by its misfit where over the noise
