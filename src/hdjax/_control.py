@@ -54,7 +54,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._effects import Effects
 from ._model import Drive, Parameters, Smoothing, _as_float, friction_torque
-from ._plant import _outputs, _vector_field
+from ._plant import _low_speed_friction, _outputs, _vector_field
 from ._solver import Rodas3
 
 _REFINE_RTOL = 0.1  # relative part of the gross step-failure check (see the module doc)
@@ -234,6 +234,9 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
     geometry = (zero, zero, zero)
     solver = Rodas3()
     term = dfx.ODETerm(_vector_field)
+    # eq. 9 with a fitted low-speed law (SPEC §4b), as in `simulate`; a recorded-current offset does
+    # not apply here: the law commands the true current
+    p_dyn, smoothing_dyn = _low_speed_friction(p, effects, smoothing)
     # absolute error scales of the state (torsion worth 1 N·m, 1 rad/s, 1 mrad, 10 mrad/s, Dahl z)
     scales = (1.0 / p.K1, 1.0, 1e-3, 1e-2, 1e-2)[: len(y0)]
 
@@ -245,7 +248,7 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
         y_meas = T + effects.periodic("torque_sensor_ripple", th_m) + nT_k
         w_meas = y[1] + nw_k
         law_state, i, u = law(law_state, r_k, y_meas, w_meas)
-        args = (p, drive, _Held(t_k, i_prev, i), reference.free, zero, geometry, effects, smoothing)
+        args = (p_dyn, drive, _Held(t_k, i_prev, i), reference.free, zero, geometry, effects, smoothing_dyn)
 
         def advance(m):
             hm = ts / (substeps * m)

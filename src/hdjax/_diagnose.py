@@ -4,7 +4,11 @@ and how much an extended model gains on experiments held out of its fit.
 Method (one JIT-compiled Jacobian per round, real simulations for every held-out figure):
 
 1. Base model: the paper's identification, refined by a few trajectory-error LM steps (at the
-   Jacobian tolerance).
+   Jacobian tolerance). In the first round, before any effect, the base model's own assumptions
+   (SPEC §4b `model_form`: low-speed friction scales, sensor offsets, sensor lags) are screened by
+   the same held-out rules and every significant one is adopted (`Diagnosis.model_form`); each
+   (experiment, channel) is weighted by its own noise level and, where the current model leaves
+   more, by that misfit (a bench is never exactly the model).
 2. Evidence from residuals: order spectra against the simulated wave-generator angle θm (cycles
    per turn) for torque, velocity and output position, split locked/free, and correlations of the
    residuals with torsion, torsion³, |T|·sign(ω), di/dt and session time.

@@ -15,7 +15,7 @@ import numpy as np
 from ._config import section_options
 from ._data import Dataset
 from ._diagnose import covariate_drifts, diagnose
-from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PERIODIC, SCALAR
+from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM_NAMES, PERIODIC, SCALAR_FIELDS
 from ._experiment import stack_experiments
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._paper_id import identify_paper
@@ -115,8 +115,7 @@ def effects_to_dict(effects) -> dict:
             k, a, ph = effects.amplitudes(name)
             out[name] = {"orders": [int(x) for x in k], "amplitudes": np.asarray(a).tolist(), "phases": np.asarray(ph).tolist()}
         else:
-            fields = SCALAR[name] if name in SCALAR else MODEL_FORM[name]
-            out[name] = {f: float(getattr(effects, f)) for f in fields}
+            out[name] = {f: float(getattr(effects, f)) for f in SCALAR_FIELDS[name]}
     return out
 
 

@@ -56,6 +56,8 @@ MODEL_FORM = {
     "sensor_bandwidth": ("torque_lag", "velocity_lag"),
 }
 MODEL_FORM_NAMES = tuple(MODEL_FORM)
+#: The scalar fields of every non-periodic term, effects and model_form alike.
+SCALAR_FIELDS = {**SCALAR, **MODEL_FORM}
 
 
 def _zeros():
@@ -139,7 +141,7 @@ class Effects(eqx.Module):
 
     def with_values(self, name: str, **values) -> "Effects":
         """A copy with the scalar parameters of effect `name` set and the effect switched on."""
-        allowed = SCALAR[name] if name in SCALAR else MODEL_FORM[name]
+        allowed = SCALAR_FIELDS[name]
         bad = set(values) - set(allowed)
         if bad:
             raise ValueError(f"`Effects.with_values`: {name} takes {allowed}, got {sorted(bad)}.")

@@ -222,9 +222,6 @@ def _vector_field(t, y, args):
     q, wm, th_o, wo = y[:4]
     th_m, torsion, rate, T = _outputs(p, drive, y, geometry, effects, smoothing)
     i = current.evaluate(t - effects.delay) if "input_delay" in effects.active else current.evaluate(t)
-    if "sensor_offset" in effects.active:
-        i = i - effects.current_offset
-    p, smoothing = _low_speed_friction(p, effects, smoothing)
     drive_torque = drive.torque_constant * i + effects.periodic("cogging", th_m)
     Tf = _friction(p, drive, wm, th_m, T, start_time + t, effects, smoothing)
     dwm = (drive_torque - T / drive.gear_ratio - Tf) / p.Jeff
@@ -282,7 +279,9 @@ def simulate(
     n_valid = jnp.sum(exp.mask)
     t_last = exp.time[jnp.maximum(n_valid - 1, 1)]
     dt = (t_last - exp.time[0]) / jnp.maximum(n_valid - 1, 1)
-    current = UniformLinearInput(exp.time[0], dt, exp.current)
+    # recorded current = true current + offset (SPEC §4b `sensor_offset`), removed once per solve
+    true_current = exp.current - effects.current_offset if "sensor_offset" in effects.active else exp.current
+    current = UniformLinearInput(exp.time[0], dt, true_current)
     if simulator.fixed_step is not None:
         controller = dfx.ConstantStepSize()
         dt0 = simulator.fixed_step
@@ -303,6 +302,9 @@ def simulate(
         and isinstance(simulator.adjoint, dfx.ForwardMode)
         and experiment_batching() == "map"
     )
+    # `low_speed_friction` rescales Tss2 and the friction regularisation once per solve; it acts on
+    # eq. 9 only (initial_state and the outputs use neither)
+    p_dyn, smoothing_dyn = _low_speed_friction(p, effects, simulator.smoothing)
     sol = dfx.diffeqsolve(
         dfx.ODETerm(_vector_field),
         simulator.solver,
@@ -310,7 +312,7 @@ def simulate(
         t1=exp.time[-1],
         dt0=dt0,
         y0=y0,
-        args=(p, drive, current, exp.free, exp.start_time, geometry, effects, simulator.smoothing),
+        args=(p_dyn, drive, current, exp.free, exp.start_time, geometry, effects, smoothing_dyn),
         saveat=dfx.SaveAt(t0=True, steps=True) if save_steps else dfx.SaveAt(ts=exp.time),
         stepsize_controller=controller,
         adjoint=simulator.adjoint,

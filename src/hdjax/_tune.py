@@ -70,7 +70,7 @@ from ._control import (
     ziegler_nichols_pi,
 )
 from ._data import Dataset
-from ._effects import MODEL_FORM, PERIODIC, SCALAR, Effects
+from ._effects import PERIODIC, SCALAR_FIELDS, Effects
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, Parameters, Smoothing
 from ._progress import task
@@ -137,12 +137,11 @@ def effects_from_dict(d: dict | None) -> Effects:
             for k, a, ph in zip(spec["orders"], spec["amplitudes"], spec["phases"]):
                 if a:
                     eff = eff.with_periodic(name, int(k), float(a), float(ph))
-        elif name in SCALAR or name in MODEL_FORM:
-            fields = SCALAR[name] if name in SCALAR else MODEL_FORM[name]
-            eff = eff.with_values(name, **{f: float(spec[f]) for f in fields if f in spec})
+        elif name in SCALAR_FIELDS:
+            eff = eff.with_values(name, **{f: float(spec[f]) for f in SCALAR_FIELDS[name] if f in spec})
         else:
             raise ValueError(f"unknown effect {name!r} in an effects description; known: "
-                             f"{list(PERIODIC) + list(SCALAR) + list(MODEL_FORM)}.")
+                             f"{list(PERIODIC) + list(SCALAR_FIELDS)}.")
     return eff
 
 
