@@ -1,51 +1,93 @@
 """Benchmark (not a test): hdjax's joint trajectory-error fit against the same fit written the way a
-user without hdjax would write it — scipy `solve_ivp` (implicit, stiff) + scipy `least_squares`
-with a finite-difference Jacobian — timed in one run on the same experiments.
+user without hdjax would write it, in two ways, timed in one run on the same experiments:
 
-What is compared (both sides identical except for the numerics engine):
+- scipy: `solve_ivp` (implicit, stiff) + scipy `least_squares` with a finite-difference Jacobian;
+- casadi: CasADi + SUNDIALS CVODES (BDF) with exact forward sensitivities + `least_squares` with
+  that exact Jacobian — the peer a controls engineer would pick instead of hdjax.
+
+What is compared (all sides identical except for the numerics engine):
 
 - data: a subset of `data/hd2` (default 2 constrained + 2 free experiments, the first
   `--samples` samples = 0.5 s at 1 kHz of each record; change with the options);
 - model: eqs. 5, 8, 9 with the same smoothing as `hdjax._model` (tanh sign/step at 1e-3 rad/s,
   x(x²+s²)^((α-1)/2) power at 1e-5 rad/s), the same states (torsion, motor velocity, output angle,
   output velocity), the same initial state (local line fits with rest detection, as
-  `hdjax.initial_state`), piecewise-linear current;
+  `hdjax.initial_state`; `start_fits` gives the same fits to scipy and CasADi), piecewise-linear
+  current;
 - residuals: torque, motor velocity and (free motion) output position, each divided by the same
-  noise levels (`hdjax._fit.noise_levels`, computed once and given to both), the output-position
+  noise levels (`hdjax._fit.noise_levels`, computed once and given to all), the output-position
   residual projected off {offset, slope} per experiment, as `hdjax._fit.experiment_residuals`;
 - unknowns: the same nine parameters (`DEFAULT_FREE`) in the same unconstrained coordinates (log
-  of the positive ones, Stribeck amplitudes scaled by their start value); alpha, Tss2 fixed;
+  of the positive ones, Stribeck amplitudes scaled by their start value; `to_params`/`to_theta`,
+  written symbolically on the CasADi side); alpha, Tss2 fixed;
 - start point: the paper's identification on all 50 HD2 experiments (`identify_paper`);
-- ODE tolerances rtol 1e-6, atol 1e-8 on both sides (hdjax `Simulator(rtol=1e-6, atol=1e-8)`,
-  scipy `solve_ivp(rtol=1e-6, atol=1e-8)`); `--ode-rtol` changes both (atol = rtol/100; the fit
-  command's joint fit uses rtol 1e-5);
-- stopping: optimistix LM `rtol = atol = 1e-6` (relative step and cost change) vs scipy
-  `xtol = ftol = 1e-6`; the same cap on LM iterations (`--max-steps`; scipy: `max_nfev` =
-  max_steps·(1 + 9) evaluations, because each finite-difference Jacobian costs 9 of them).
+- ODE tolerances rtol 1e-6, atol 1e-8 on all sides (hdjax `Simulator(rtol=1e-6, atol=1e-8)`,
+  scipy `solve_ivp(rtol=1e-6, atol=1e-8)`, CVODES `reltol=1e-6, abstol=1e-8`); `--ode-rtol`
+  changes all (atol = rtol/100; the fit command's joint fit uses rtol 1e-5);
+- stopping: optimistix LM `rtol = atol = 1e-6` (relative step and cost change) vs scipy's
+  MINPACK LM `xtol = ftol = 1e-6` (both scipy and CasADi columns, `--scipy-tol`); the same cap on
+  LM iterations (`--max-steps`; scipy: `max_nfev` = max_steps·(1 + 9) evaluations, because each
+  finite-difference Jacobian costs 9 of them; CasADi: `max_nfev` = max_steps + 1, one residual
+  per LM step plus the start, the Jacobians not counted, as MINPACK's lmder counts).
 
-The finite-difference step is set to 1e-3 (relative), about the square root of the ODE tolerance,
-as a careful user would: with scipy's default step (~1.5e-8) the differences are dominated by the
-adaptive solver's tolerance-level noise, and least_squares stopped after 5 evaluations on an
-`xtol` test with the cost unchanged (measured; `--diff-step 0` gives scipy's default).
-LSODA is the default integrator because it was the fastest of the three on these records
+scipy column. The finite-difference step is set to 1e-3 (relative), about the square root of the
+ODE tolerance, as a careful user would: with scipy's default step (~1.5e-8) the differences are
+dominated by the adaptive solver's tolerance-level noise, and least_squares stopped after 5
+evaluations on an `xtol` test with the cost unchanged (measured; `--diff-step 0` gives scipy's
+default). LSODA is the default integrator because it was the fastest of the three on these records
 (0.5 s per 500-sample record, against 3.5–4.3 s for BDF and 5.9–6.8 s for Radau, measured).
+
+CasADi column (`_casadi_peer.py`). The right-hand side of `simulate_scipy` is written in CasADi
+SX; one `casadi.integrator('F', 'cvodes', ...)` (BDF, Newton, CasADi's default dense linear
+solver) per distinct record time axis, with the record's sample times as its output grid; one call
+per record inside an MX graph that also holds the symbolic `to_params`, the parameter-dependent
+initial state and the whitened, projected residuals. The Jacobian is `casadi.jacobian` of that
+graph with respect to theta: CasADi differentiates through the integrator in forward mode,
+generating the forward-sensitivity equations by AD and integrating them with the states in one
+CVODES run (9 directions; the augmented system shares the state Newton matrix, and the
+sensitivities take part in the error test) — exact, no finite differences (`--check-jacobian`
+prints it against central differences). The LM is scipy's MINPACK `least_squares(method='lm',
+jac=<CasADi Jacobian>)` with the scipy column's xtol/ftol/gtol, so the two scipy-driven columns
+differ only in the simulation and the Jacobian. A failed CVODES run gives the same 1e3 penalty
+residuals as `residuals_scipy`.
+The piecewise-linear current is realised sample to sample: CasADi's piecewise-constant integrator
+control u = (a, b) on the output grid, current = a + b·t, the line through the interval's two
+current samples — exactly the interpolation of `simulate_scipy`, with knots at the recorded sample
+times (scipy computes the sample index from the first step; the HD2 time stamps are within 4e-8 s
+of that grid). CasADi restarts CVODES wherever u changes, i.e. at every sample, so no step
+straddles a kink of the current. It was also the faster of the two exact choices measured (1
+constrained + 1 free record, 500 samples, rtol 1e-6): residual 0.038 s and Jacobian 0.23 s, against
+0.07 s and 0.50 s for a single CVODES run per record with the current from a parametric
+`casadi.interpolant('linear')` of the samples (the solver steps over the kinks: 339 error-test
+failures in 3549 steps on the free record). CVODES options besides the tolerances:
+`second_order_correction=False` (the sensitivity Newton iterations use the state Jacobian only;
+same solution, Jacobian 0.23 s instead of 0.37 s, measured; `--casadi-options '{}'` restores
+CasADi's default). CasADi's construction time (symbolic graph, Functions, the augmented
+sensitivity integrator built on the first Jacobian call) is inside its timed run: a user pays it.
 
 hdjax's time includes its compilation (a user pays it; `fit_parameters` compiles once per call).
 An observer on the LM iterations (a `jax.debug.callback` timestamping each step) splits hdjax's
 time into compilation, per-step time and the final covariance, and gives the time at which
-hdjax's accepted cost first reached scipy's final cost (printed as the equal-cost ratio).
-Both final costs are ½·Σr² evaluated with the *same* scipy residual function, so they are
-directly comparable. The last line printed is `speedup_vs_scipy: <scipy time / hdjax time>`.
+hdjax's accepted cost first reached each other side's final cost (printed as the equal-cost
+ratio). All final costs are ½·Σr² evaluated with the *same* scipy residual function, so they are
+directly comparable. The last lines printed are `speedup_vs_casadi: <casadi time / hdjax time>`
+then `speedup_vs_scipy: <scipy time / hdjax time>` (each only when that column ran, so
+`speedup_vs_scipy` stays the last line whenever scipy ran). `--no-scipy` / `--no-casadi` skip a
+column (scipy on the full problem takes ~260 s). `--check-jacobian` prints, untimed, the CasADi
+Jacobian against central differences of the CasADi residual at the start point.
 
 Usage: `python benchmarks/fit_vs_scipy.py [--constrained 2] [--free 2] [--samples 500]
-[--max-steps 20] [--method LSODA] [--data data/hd2]`
+[--max-steps 20] [--method LSODA] [--data data/hd2] [--no-scipy] [--no-casadi] [--check-jacobian]
+[--casadi-options JSON]`
 """
 
 import argparse
+import json
 import math
 import os
 import pathlib
 import platform
+import sys
 import time
 
 import jax
@@ -68,6 +110,8 @@ from hdjax._paper_id import identify_paper  # noqa: E402
 
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+# CVODES options of the CasADi column besides the tolerances (see the module docstring)
+CASADI_OPTIONS = {"second_order_correction": False}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -96,6 +140,15 @@ def _ssp(x, alpha):  # smoothed |x|^alpha sign(x)
     return x * (x * x + RATE_SCALE * RATE_SCALE) ** ((alpha - 1.0) / 2.0)
 
 
+def start_fits(e):
+    """(wm0, T0, dT0, tho0): the line fits at the record's start that the initial state is built from."""
+    t = e["time"]
+    wm0, _ = _line_at_start(t, e["motor_velocity"])
+    T0, dT0 = _line_at_start(t, e["torque"])
+    tho0 = _line_at_start(t, e["output_position"])[0] if e["free"] else 0.0
+    return wm0, T0, dT0, tho0
+
+
 def simulate_scipy(p, drive, e, method, rtol=1e-6):
     """One experiment with solve_ivp; returns (torque, motor velocity, output angle, ok)."""
     N, Km, Jl = drive["N"], drive["Km"], drive["Jload"]
@@ -103,9 +156,7 @@ def simulate_scipy(p, drive, e, method, rtol=1e-6):
     dt = t[1] - t[0]
     cur = e["current"]
     free = e["free"]
-    wm0, _ = _line_at_start(t, e["motor_velocity"])
-    T0, dT0 = _line_at_start(t, e["torque"])
-    tho0 = _line_at_start(t, e["output_position"])[0] if free else 0.0
+    wm0, T0, dT0, tho0 = start_fits(e)
     wo0 = (wm0 / N - dT0 / p["K1"]) if free else 0.0
     q0 = (T0 - p["Tst"] * _ssp(wm0 / N - wo0, p["alpha"])) / p["K1"]
     K1, Tst, al, Je = p["K1"], p["Tst"], p["alpha"], p["Jeff"]
@@ -174,19 +225,47 @@ def _trim(e: Experiment, n: int) -> Experiment:
                          for k in Experiment.__dataclass_fields__})
 
 
+def _check_casadi_jacobian(build, J, theta0):
+    """Print the CasADi Jacobian (at the benchmark's ODE tolerance) against central differences of
+    the CasADi residual at the start point. The differenced residual is built with rtol 1e-10: at
+    the benchmark's rtol (1e-6) the adaptive solver's tolerance-level noise dominates central
+    differences (measured: 0.4-1.5 % column errors at h = 1e-3, 3-12 % at h = 1e-4, ~100 % for the
+    Stribeck amplitudes at both); two steps are shown because the two
+    Stribeck-amplitude columns, 300-1200 times smaller than the rest, need the larger one."""
+    R_fine, _ = build(1e-10)
+    Jc = np.asarray(J(theta0))
+    for h in (1e-3, 1e-4):
+        Jfd = np.empty_like(Jc)
+        for j in range(len(theta0)):
+            d = np.zeros(len(theta0))
+            d[j] = h
+            Jfd[:, j] = (np.asarray(R_fine(theta0 + d)).ravel() - np.asarray(R_fine(theta0 - d)).ravel()) / (2 * h)
+        cols = np.linalg.norm(Jc - Jfd, axis=0) / np.linalg.norm(Jfd, axis=0)
+        print(f"check: CasADi Jacobian vs central differences (step {h:g} in theta, residual at rtol 1e-10): "
+              f"relative error {np.linalg.norm(Jc - Jfd) / np.linalg.norm(Jfd):.2e} (Frobenius); by column "
+              + ", ".join(f"{k} {c:.1e}" for k, c in zip(DEFAULT_FREE, cols)), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=pathlib.Path, default=ROOT / "data" / "hd2")
     ap.add_argument("--constrained", type=int, default=2)
     ap.add_argument("--free", type=int, default=2)
     ap.add_argument("--samples", type=int, default=500, help="samples kept from the start of each record")
-    ap.add_argument("--max-steps", type=int, default=20, help="cap on LM iterations (both sides)")
+    ap.add_argument("--max-steps", type=int, default=20, help="cap on LM iterations (all sides)")
     ap.add_argument("--method", default="LSODA", help="solve_ivp method (Radau, BDF, LSODA)")
     ap.add_argument("--diff-step", type=float, default=1e-3,
                     help="relative finite-difference step of least_squares (default 1e-3 ≈ sqrt(ODE rtol))")
     ap.add_argument("--scipy-tol", type=float, default=1e-6,
-                    help="least_squares xtol and ftol (default 1e-6, optimistix LM's rtol/atol)")
-    ap.add_argument("--ode-rtol", type=float, default=1e-6, help="ODE rtol on both sides (atol = rtol/100)")
+                    help="least_squares xtol and ftol, scipy and CasADi columns (default 1e-6, optimistix LM's "
+                         "rtol/atol)")
+    ap.add_argument("--ode-rtol", type=float, default=1e-6, help="ODE rtol on all sides (atol = rtol/100)")
+    ap.add_argument("--no-scipy", action="store_true", help="skip the scipy column (~260 s on the full problem)")
+    ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi column")
+    ap.add_argument("--check-jacobian", action="store_true",
+                    help="print the CasADi Jacobian against central differences at the start point (untimed)")
+    ap.add_argument("--casadi-options", type=json.loads, default=dict(CASADI_OPTIONS),
+                    help=f"JSON dict of CVODES integrator options (default {json.dumps(CASADI_OPTIONS)})")
     args = ap.parse_args()
 
     ds = load_dataset(args.data)
@@ -224,23 +303,82 @@ def main() -> None:
           f"(torque, motor velocity)", flush=True)
 
     theta0 = to_theta(p0d, p0d)
-    cost0 = 0.5 * np.sum(residuals_scipy(theta0, p0d, drive, plain, sig, args.method, args.ode_rtol) ** 2)
+    r0 = residuals_scipy(theta0, p0d, drive, plain, sig, args.method, args.ode_rtol)
+    cost0 = 0.5 * np.sum(r0**2)
+
+    use_casadi = not args.no_casadi or args.check_jacobian
+    if use_casadi:
+        import casadi  # noqa: PLC0415 (only needed for this column)
+
+        sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+        from _casadi_peer import build_casadi_fit  # noqa: PLC0415
+
+        starts = [start_fits(e) for e in plain]
+
+        def build(rtol):
+            return build_casadi_fit(p0d, drive, plain, starts, sig, rtol, DEFAULT_FREE, POSITIVE, args.casadi_options)
+
+        R_chk, J_chk = build(args.ode_rtol)  # untimed copy for the checks; the fit below builds its own
+        r_c = np.asarray(R_chk(theta0)).ravel()
+        print(f"check: CasADi vs scipy residuals at the start point, max |difference| = "
+              f"{np.max(np.abs(r_c - r0)):.3g} noise std; cost {0.5 * np.sum(r_c**2):.6g} vs {cost0:.6g}", flush=True)
+        if args.check_jacobian:
+            _check_casadi_jacobian(build, J_chk, theta0)
+
+    refs = []  # (name, theta, seconds, evaluation log) of the columns that ran
 
     # --- scipy ---
-    scipy_log = []  # (seconds since start, cost) of every residual evaluation, finite differences included
+    if not args.no_scipy:
+        scipy_log = []  # (seconds since start, cost) of every residual evaluation, finite differences included
 
-    def residuals_logged(theta, *a):
-        r = residuals_scipy(theta, *a)
-        scipy_log.append((time.perf_counter() - t0, 0.5 * float(np.sum(r**2))))
-        return r
+        def residuals_logged(theta, *a):
+            r = residuals_scipy(theta, *a)
+            scipy_log.append((time.perf_counter() - t0, 0.5 * float(np.sum(r**2))))
+            return r
 
-    t0 = time.perf_counter()
-    ref = least_squares(residuals_logged, theta0, args=(p0d, drive, plain, sig, args.method, args.ode_rtol), method="lm",
-                        jac="2-point", diff_step=args.diff_step or None, xtol=args.scipy_tol, ftol=args.scipy_tol,
-                        gtol=1e-10, max_nfev=args.max_steps * (1 + len(DEFAULT_FREE)))
-    t_scipy = time.perf_counter() - t0
-    print(f"scipy: solve_ivp({args.method}) + least_squares(lm, 2-point): {t_scipy:.1f} s, {ref.nfev} residual "
-          f"evaluations (incl. finite differences), status {ref.status} ({ref.message})", flush=True)
+        t0 = time.perf_counter()
+        ref = least_squares(residuals_logged, theta0, args=(p0d, drive, plain, sig, args.method, args.ode_rtol),
+                            method="lm", jac="2-point", diff_step=args.diff_step or None, xtol=args.scipy_tol,
+                            ftol=args.scipy_tol, gtol=1e-10, max_nfev=args.max_steps * (1 + len(DEFAULT_FREE)))
+        t_scipy = time.perf_counter() - t0
+        print(f"scipy: solve_ivp({args.method}) + least_squares(lm, 2-point): {t_scipy:.1f} s, {len(scipy_log)} "
+              f"residual evaluations incl. finite differences (least_squares nfev {ref.nfev}), status {ref.status} "
+              f"({ref.message})", flush=True)
+        refs.append(("scipy", ref.x, t_scipy, scipy_log))
+
+    # --- CasADi + CVODES ---
+    if not args.no_casadi:
+        cas_log = []  # (seconds since start, cost) of every residual evaluation
+        spent = {"residual": 0.0, "jacobian": 0.0, "failed": 0}
+
+        def cas_residuals(theta):
+            t1 = time.perf_counter()
+            try:
+                r = np.asarray(R(theta)).ravel()
+            except RuntimeError:  # CVODES gave up: the same penalty as residuals_scipy
+                r = np.full(3 * n_samples, 1e3)
+                spent["failed"] += 1
+            spent["residual"] += time.perf_counter() - t1
+            cas_log.append((time.perf_counter() - t0, 0.5 * float(np.sum(r**2))))
+            return r
+
+        def cas_jacobian(theta):
+            t1 = time.perf_counter()
+            jac = np.asarray(J(theta))
+            spent["jacobian"] += time.perf_counter() - t1
+            return jac
+
+        t0 = time.perf_counter()
+        R, J = build(args.ode_rtol)
+        t_build = time.perf_counter() - t0
+        cas = least_squares(cas_residuals, theta0, jac=cas_jacobian, method="lm", xtol=args.scipy_tol,
+                            ftol=args.scipy_tol, gtol=1e-10, max_nfev=args.max_steps + 1)
+        t_casadi = time.perf_counter() - t0
+        print(f"casadi: CVODES(BDF) forward sensitivities + least_squares(lm, exact Jacobian): {t_casadi:.1f} s incl. "
+              f"{t_build:.2f} s construction; {cas.njev} LM iterations (= Jacobians, {spent['jacobian']:.1f} s), "
+              f"{cas.nfev} residual evaluations ({spent['residual']:.1f} s, {spent['failed']} failed), status "
+              f"{cas.status} ({cas.message})", flush=True)
+        refs.append(("casadi", cas.x, t_casadi, cas_log))
 
     # --- hdjax ---
     # fit_parameters' default LM, with an observer that timestamps every LM step on the host (a
@@ -258,8 +396,9 @@ def main() -> None:
     res = fit_parameters(p0, ds.drive, batch, free=DEFAULT_FREE, simulator=simulator, solver=lm,
                          max_steps=args.max_steps, sigma=sigma)
     t_hdjax = time.perf_counter() - t0
-    print(f"hdjax: fit_parameters (optimistix LM, jacfwd through Rodas3): {t_hdjax:.1f} s incl. compilation, "
-          f"{res.steps} LM steps, converged {res.converged}", flush=True)
+    solver_name = type(getattr(simulator, "solver", None)).__name__
+    print(f"hdjax: fit_parameters (optimistix LM, jacfwd through the {solver_name} simulation): {t_hdjax:.1f} s incl. "
+          f"compilation, {res.steps} LM steps, converged {res.converged}", flush=True)
     if log:
         first = log[0][0] - t0
         per_step = (log[-1][0] - log[0][0]) / max(len(log) - 1, 1)
@@ -267,39 +406,51 @@ def main() -> None:
               f"linearisation), then {per_step:.2f} s per LM step ({len(log)} steps), "
               f"{t_hdjax - (log[-1][0] - t0):.1f} s after the last step (final residual, Jacobian, covariance)")
         print("hdjax LM accepted cost by step: " + ", ".join(f"{k}:{acc:.6g}" for _, k, _, acc in log if k >= 1))
-        # equal-cost comparison: the first accepted hdjax iterate at or below scipy's final cost,
-        # both costs from hdjax's residual function
-        p_ref = hdjax.Parameters.from_dict(to_params(ref.x, p0d))
-        r_ref = eqx.filter_jit(lambda p, b: jax.vmap(lambda e: experiment_residuals(p, ds.drive, e, sigma, simulator))(b))(
-            p_ref, batch)
-        cost_ref_h = 0.5 * float(np.sum(np.asarray(r_ref) ** 2))
-        # (step 0 reports no accepted cost yet: optimistix's placeholder is 0)
-        hit = next(((t, k) for t, k, _, acc in log if k >= 1 and 0 < acc <= cost_ref_h), None)
-        if hit:
-            print(f"equal cost: hdjax's accepted cost first fell to scipy's final cost ({cost_ref_h:.6g} in hdjax's "
-                  f"residuals) after {hit[1]} LM steps, {hit[0] - t0:.1f} s incl. compilation: ratio "
-                  f"{t_scipy / (hit[0] - t0):.2f}")
-        else:
-            print(f"equal cost: hdjax's accepted cost never fell to scipy's final cost ({cost_ref_h:.6g})")
+        # equal-cost comparison: the first accepted hdjax iterate at or below the other side's final
+        # cost, both costs from hdjax's residual function
+        hdjax_residuals = eqx.filter_jit(
+            lambda p, b: jax.vmap(lambda e: experiment_residuals(p, ds.drive, e, sigma, simulator))(b))
+        for name, x, t_ref, _ in refs:
+            r_ref = hdjax_residuals(hdjax.Parameters.from_dict(to_params(x, p0d)), batch)
+            cost_ref_h = 0.5 * float(np.sum(np.asarray(r_ref) ** 2))
+            # (step 0 reports no accepted cost yet: optimistix's placeholder is 0)
+            hit = next(((t, k) for t, k, _, acc in log if k >= 1 and 0 < acc <= cost_ref_h), None)
+            if hit:
+                print(f"equal cost: hdjax's accepted cost first fell to {name}'s final cost ({cost_ref_h:.6g} in "
+                      f"hdjax's residuals) after {hit[1]} LM steps, {hit[0] - t0:.1f} s incl. compilation: ratio "
+                      f"{t_ref / (hit[0] - t0):.2f}")
+            else:
+                print(f"equal cost: hdjax's accepted cost never fell to {name}'s final cost ({cost_ref_h:.6g})")
 
     theta_h = to_theta(res.params.to_dict(), p0d)
     cost_h = 0.5 * np.sum(residuals_scipy(theta_h, p0d, drive, plain, sig, args.method, args.ode_rtol) ** 2)
-    cost_s = 0.5 * np.sum(ref.fun**2)
-    hit = next((t for t, c in scipy_log if c <= cost_h * (1 + 1e-4)), None)
-    print(f"scipy's evaluated cost reached hdjax's final cost (+0.01 %): "
-          + (f"after {hit:.1f} s" if hit is not None else f"never within its {t_scipy:.1f} s (lowest "
-             f"{min(c for _, c in scipy_log):.6g}, {len(scipy_log)} evaluations)"))
+    finals = {}
+    for name, x, t_ref, rlog in refs:
+        # every side's final cost from the same (scipy) residual function
+        finals[name] = 0.5 * np.sum(residuals_scipy(x, p0d, drive, plain, sig, args.method, args.ode_rtol) ** 2)
+        hit = next((t for t, c in rlog if c <= cost_h * (1 + 1e-4)), None)
+        print(f"{name}'s evaluated cost reached hdjax's final cost (+0.01 %): "
+              + (f"after {hit:.1f} s" if hit is not None else f"never within its {t_ref:.1f} s (lowest "
+                 f"{min(c for _, c in rlog):.6g}, {len(rlog)} evaluations)"))
     print(f"start cost:  {cost0:.6g}   (1/2 sum r^2, scipy residual function)")
-    print(f"final cost:  scipy {cost_s:.6g}   hdjax {cost_h:.6g}   (relative difference "
-          f"{(cost_h - cost_s) / cost_s:+.2e}; both evaluated with the scipy residual function)")
-    ps = to_params(ref.x, p0d)
+    print("final cost:  " + "   ".join(f"{n} {c:.6g}" for n, c in finals.items()) + f"   hdjax {cost_h:.6g}   "
+          f"(all evaluated with the scipy residual function; hdjax relative to "
+          + (", ".join(f"{n} {(cost_h - c) / c:+.2e}" for n, c in finals.items()) or "nothing") + ")")
+    ps = {name: to_params(x, p0d) for name, x, _, _ in refs}
     for k in DEFAULT_FREE:
-        print(f"  {k:6s} scipy {ps[k]:.6g}  hdjax {float(getattr(res.params, k)):.6g}")
+        print(f"  {k:6s} " + "  ".join(f"{n} {p[k]:.6g}" for n, p in ps.items())
+              + f"  hdjax {float(getattr(res.params, k)):.6g}")
+    versions = f"jax {jax.__version__}, scipy {scipy.__version__}"
+    if use_casadi:
+        versions += f", casadi {casadi.__version__}"
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, load average "
-          f"{os.getloadavg()[0]:.2f}, jax {jax.__version__}, scipy {scipy.__version__}, XLA_FLAGS="
-          f"{os.environ.get('XLA_FLAGS', '')!r}")
-    print(f"time: scipy {t_scipy:.1f} s, hdjax {t_hdjax:.1f} s")
-    print(f"speedup_vs_scipy: {t_scipy / t_hdjax:.2f}")
+          f"{os.getloadavg()[0]:.2f}, {versions}, XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}")
+    times = {name: t_ref for name, _, t_ref, _ in refs}
+    print("time: " + ", ".join(f"{n} {t:.1f} s" for n, t in times.items()) + f", hdjax {t_hdjax:.1f} s")
+    # speedup_vs_scipy stays the last line whenever scipy ran
+    for name in ("casadi", "scipy"):
+        if name in times:
+            print(f"speedup_vs_{name}: {times[name] / t_hdjax:.2f}")
 
 
 if __name__ == "__main__":

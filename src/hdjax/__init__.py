@@ -32,6 +32,7 @@ from ._plant import (
     simulate_batch as simulate_batch,
 )
 from ._solver import Rodas3 as Rodas3
+from ._stepper import VelocityImplicit as VelocityImplicit
 from ._fit import fit_parameters as fit_parameters
 from ._paper_id import identify_paper as identify_paper
 from ._diagnose import Diagnosis as Diagnosis, covariate_drifts as covariate_drifts, diagnose as diagnose_effects

@@ -20,6 +20,8 @@ zero torsion rate and zero velocity; the default is an L-stable Rosenbrock metho
 fall inside a step.
 """
 
+import os
+
 import diffrax as dfx
 import equinox as eqx
 import jax
@@ -28,6 +30,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._experiment import Experiment
 from ._solver import Rodas3
+from ._stepper import VelocityImplicit, implicit_trajectory
 from ._effects import Effects, dahl_rate, stiffness_torque
 from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_basis
 from ._sharding import (
@@ -282,6 +285,8 @@ def simulate(
     # recorded current = true current + offset (SPEC §4b `sensor_offset`), removed once per solve
     true_current = exp.current - effects.current_offset if "sensor_offset" in effects.active else exp.current
     current = UniformLinearInput(exp.time[0], dt, true_current)
+    if isinstance(simulator.solver, VelocityImplicit):
+        return _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator)
     if simulator.fixed_step is not None:
         controller = dfx.ConstantStepSize()
         dt0 = simulator.fixed_step
@@ -321,8 +326,30 @@ def simulate(
     )
     ys = _at_sample_times(sol.ts, sol.ys, exp.time) if save_steps else sol.ys
     th_m, torsion, _, T = _outputs(p, drive, ys, geometry, effects, simulator.smoothing)
+    return _measured(
+        T, ys[1], th_m, ys[2], ys[3], torsion, dt, effects,
+        success=sol.result == dfx.RESULTS.successful, num_steps=sol.stats["num_accepted_steps"],
+    )
+
+
+def _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator):
+    """`simulate` with the fixed-step implicit velocity-level stepper (`hdjax._stepper`)."""
+    geometry = (y0[0], y0[2], th_m0)
+    p_dyn = p
+    vc = 0.0  # exact set-valued Coulomb friction
+    if "low_speed_friction" in effects.active:
+        p_dyn = eqx.tree_at(lambda q: q.Tss2, p, p.Tss2 * jnp.exp(effects.stribeck_scale))
+        vc = simulator.smoothing.velocity_scale * jnp.exp(effects.friction_scale)
+    (q, wm, th_o, wo, T, torsion, th_m), ok, n_steps = implicit_trajectory(
+        p_dyn, drive, exp, y0, geometry, current, effects, vc, dt, simulator.solver
+    )
+    return _measured(T, wm, th_m, th_o, wo, torsion, dt, effects, success=jnp.all(ok | ~exp.mask), num_steps=jnp.asarray(n_steps))
+
+
+def _measured(T, wm, th_m, th_o, wo, torsion, dt, effects: Effects, *, success, num_steps) -> Trajectory:
+    """The simulated sensor readings: torque ripple, sensor lags and offsets (SPEC §4, §4b)."""
     measured_T = T + effects.periodic("torque_sensor_ripple", th_m)
-    measured_w = ys[1]
+    measured_w = wm
     if "sensor_bandwidth" in effects.active:
         # smooth through τ = 0 (where the fit starts); a negative τ (a lead, |a| < 1) is allowed
         # down to −0.45 Δt so that the map stays smooth there and stable everywhere
@@ -335,11 +362,11 @@ def simulate(
         torque=measured_T,
         motor_velocity=measured_w,
         motor_position=th_m,
-        output_position=ys[2],
-        output_velocity=ys[3],
+        output_position=th_o,
+        output_velocity=wo,
         torsion=torsion,
-        success=sol.result == dfx.RESULTS.successful,
-        num_steps=sol.stats["num_accepted_steps"],
+        success=success,
+        num_steps=num_steps,
     )
 
 
@@ -359,7 +386,11 @@ def simulate_batch(
         sharded, n = shard_experiments(batch)
         out = _simulate_sharded(p, drive, sharded, effects, simulator, experiment_mesh())
         return jax.tree.map(lambda x: x[:n], out)
-    return for_each_experiment(lambda e: simulate(p, drive, e, effects=effects, simulator=simulator), batch)
+    one = lambda e: simulate(p, drive, e, effects=effects, simulator=simulator)  # noqa: E731
+    if isinstance(simulator.solver, VelocityImplicit) and os.environ.get("HDJAX_EXPERIMENT_BATCHING", "") != "map":
+        # a fixed-cost step: every lane does the same work, so vmap has no lock-step penalty
+        return jax.vmap(one)(batch)
+    return for_each_experiment(one, batch)
 
 
 @eqx.filter_jit
