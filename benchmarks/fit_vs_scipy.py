@@ -262,6 +262,9 @@ def main() -> None:
     ap.add_argument("--ode-rtol", type=float, default=1e-6, help="ODE rtol on all sides (atol = rtol/100)")
     ap.add_argument("--no-scipy", action="store_true", help="skip the scipy column (~260 s on the full problem)")
     ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi column")
+    ap.add_argument("--hdjax-substeps", type=int, default=0,
+                    help="hdjax side on the fixed-step hdjax.VelocityImplicit with this many substeps per sample "
+                         "(the exact model: sticking and |rate|^alpha unsmoothed); 0 = Rodas3 (default)")
     ap.add_argument("--check-jacobian", action="store_true",
                     help="print the CasADi Jacobian against central differences at the start point (untimed)")
     ap.add_argument("--casadi-options", type=json.loads, default=dict(CASADI_OPTIONS),
@@ -292,6 +295,8 @@ def main() -> None:
           f"{len(dyn)} experiments; ODE rtol {args.ode_rtol:g}; noise levels {', '.join(f'{s:.3g}' for s in sig)}", flush=True)
 
     simulator = hdjax.Simulator(rtol=args.ode_rtol, atol=args.ode_rtol * 1e-2)  # atol as in simulate_scipy
+    if args.hdjax_substeps > 0:
+        simulator = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=args.hdjax_substeps))
     # the reference must simulate the same model: compare both simulations at the start point
     tr = eqx.filter_jit(hdjax.simulate_batch)(p0, ds.drive, batch, simulator=simulator)
     worst = 0.0
