@@ -20,8 +20,6 @@ zero torsion rate and zero velocity; the default is an L-stable Rosenbrock metho
 fall inside a step.
 """
 
-import os
-
 import diffrax as dfx
 import equinox as eqx
 import jax
@@ -335,11 +333,9 @@ def simulate(
 def _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator):
     """`simulate` with the fixed-step implicit velocity-level stepper (`hdjax._stepper`)."""
     geometry = (y0[0], y0[2], th_m0)
-    p_dyn = p
-    vc = 0.0  # exact set-valued Coulomb friction
-    if "low_speed_friction" in effects.active:
-        p_dyn = eqx.tree_at(lambda q: q.Tss2, p, p.Tss2 * jnp.exp(effects.stribeck_scale))
-        vc = simulator.smoothing.velocity_scale * jnp.exp(effects.friction_scale)
+    # exact set-valued Coulomb friction (vc = 0), unless `low_speed_friction` fits a ramp width
+    p_dyn, smoothing_dyn = _low_speed_friction(p, effects, simulator.smoothing)
+    vc = smoothing_dyn.velocity_scale if "low_speed_friction" in effects.active else 0.0
     (q, wm, th_o, wo, T, torsion, th_m), ok, n_steps = implicit_trajectory(
         p_dyn, drive, exp, y0, geometry, current, effects, vc, dt, simulator.solver
     )
@@ -386,11 +382,11 @@ def simulate_batch(
         sharded, n = shard_experiments(batch)
         out = _simulate_sharded(p, drive, sharded, effects, simulator, experiment_mesh())
         return jax.tree.map(lambda x: x[:n], out)
-    one = lambda e: simulate(p, drive, e, effects=effects, simulator=simulator)  # noqa: E731
-    if isinstance(simulator.solver, VelocityImplicit) and os.environ.get("HDJAX_EXPERIMENT_BATCHING", "") != "map":
-        # a fixed-cost step: every lane does the same work, so vmap has no lock-step penalty
-        return jax.vmap(one)(batch)
-    return for_each_experiment(one, batch)
+    return for_each_experiment(
+        lambda e: simulate(p, drive, e, effects=effects, simulator=simulator),
+        batch,
+        fixed_cost=isinstance(simulator.solver, VelocityImplicit),
+    )
 
 
 @eqx.filter_jit

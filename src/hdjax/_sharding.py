@@ -125,7 +125,7 @@ def map_experiments(fn, mesh: Mesh | None):
     )
 
 
-def experiment_batching() -> str:
+def experiment_batching(*, fixed_cost: bool = False) -> str:
     """How a device runs its experiments: `"vmap"` (all at once, in lock-step) or `"map"` (one
     after the other, `jax.lax.map`).
 
@@ -134,18 +134,20 @@ def experiment_batching() -> str:
     solve under `vmap` runs every lane for as many steps as its slowest lane (and a vmapped
     Levenberg–Marquardt loop for as many iterations as its slowest fit), and on a CPU a batched
     step costs as much per lane as a single one — so on the CPU `vmap` pays the slowest
-    experiment's cost for every experiment. On a GPU the lanes run in parallel and `vmap` wins."""
+    experiment's cost for every experiment. On a GPU the lanes run in parallel and `vmap` wins.
+    With `fixed_cost=True` (a solver whose steps cost the same in every lane, such as
+    `hdjax.VelocityImplicit`) there is no slowest lane, and `vmap` is the default everywhere."""
     how = os.environ.get("HDJAX_EXPERIMENT_BATCHING", "").strip().lower()
     if how in ("vmap", "map"):
         return how
     if how:
         raise ValueError(f"HDJAX_EXPERIMENT_BATCHING={how!r}: use 'vmap' or 'map' (or leave it unset).")
-    return "map" if jax.default_backend() == "cpu" else "vmap"
+    return "map" if jax.default_backend() == "cpu" and not fixed_cost else "vmap"
 
 
-def for_each_experiment(fn, *batched):
+def for_each_experiment(fn, *batched, fixed_cost: bool = False):
     """`fn(*slices)` for every index of the leading (experiment) axis of `batched`, stacked; run by
-    `vmap` or `jax.lax.map` as `experiment_batching()` says (same results either way)."""
-    if experiment_batching() == "vmap":
+    `vmap` or `jax.lax.map` as `experiment_batching(fixed_cost=...)` says (same results either way)."""
+    if experiment_batching(fixed_cost=fixed_cost) == "vmap":
         return jax.vmap(fn)(*batched)
     return jax.lax.map(lambda xs: fn(*xs), batched)
