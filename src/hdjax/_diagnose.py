@@ -68,7 +68,7 @@ from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PER
 from ._experiment import Experiment, stack_experiments
 from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map, white_noise_level
 from ._model import Drive, Parameters
-from ._plant import Simulator, simulate
+from ._plant import Simulator, is_fixed_cost, simulate
 from ._sharding import for_each_experiment
 
 
@@ -195,15 +195,17 @@ class _Problem(eqx.Module):
 
     @eqx.filter_jit
     def simulate(self, zs, p_ref, batch, sigma):
-        return for_each_experiment(lambda z, e, s: self._one(z, p_ref, e, s), zs, batch, sigma)
+        return for_each_experiment(lambda z, e, s: self._one(z, p_ref, e, s), zs, batch, sigma,
+                                   fixed_cost=is_fixed_cost(self.simulator))
 
     @eqx.filter_jit
     def trajectories(self, zs, p_ref, batch):
-        return for_each_experiment(lambda z, e: self._traj(z, p_ref, e), zs, batch)
+        return for_each_experiment(lambda z, e: self._traj(z, p_ref, e), zs, batch, fixed_cost=is_fixed_cost(self.simulator))
 
     @eqx.filter_jit
     def jacobian(self, z, tangents, p_ref, batch, sigma):
-        f = lambda z_: for_each_experiment(lambda e, s: self._one(z_, p_ref, e, s), batch, sigma)
+        f = lambda z_: for_each_experiment(lambda e, s: self._one(z_, p_ref, e, s), batch, sigma,
+                                           fixed_cost=is_fixed_cost(self.simulator))
         r, J = jax.vmap(lambda v: jax.jvp(f, (z,), (v,)), out_axes=(None, -1))(tangents)
         return r, J
 

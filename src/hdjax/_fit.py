@@ -34,7 +34,7 @@ from ._effects import Effects
 from ._experiment import Experiment
 from ._model import PARAMETER_NAMES, Drive, Parameters
 from ._paper_id import _consistency
-from ._plant import Simulator, simulate
+from ._plant import Simulator, is_fixed_cost, simulate
 from ._progress import count_progress, lm_progress
 from ._sharding import experiment_mesh, for_each_experiment, map_experiments, replicated, shard_experiments
 
@@ -380,7 +380,8 @@ def fit_parameters(
 
         def per_experiment(shared, b):
             p_, d_, s_ = shared
-            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator), b)
+            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator), b,
+                                       fixed_cost=is_fixed_cost(simulator))
 
         r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
         return r.reshape(-1)

@@ -96,6 +96,12 @@ class Simulator(eqx.Module):
     initial_window: int = 11
 
 
+def is_fixed_cost(simulator: "Simulator") -> bool:
+    """True when every step of `simulator` costs the same in every experiment (a fixed-step solver
+    such as `hdjax.VelocityImplicit`): then `vmap` over experiments has no slowest lane."""
+    return isinstance(simulator.solver, VelocityImplicit)
+
+
 def _line_at_start(t: Array, y: Array, mask: Array, n: int) -> tuple[Array, Array]:
     """Value and slope at t[0] of a least-squares line through the first `n` valid samples.
 
@@ -132,6 +138,19 @@ def initial_state(p: Parameters, drive: Drive, exp: Experiment, simulator: Simul
     N = drive.gear_ratio
     wm0, _ = _line_at_start(exp.time, exp.motor_velocity, exp.mask, n)
     T0, dT0 = _line_at_start(exp.time, exp.torque, exp.mask, n)
+    i0, _ = _line_at_start(exp.time, exp.current, exp.mask, n)
+    # Stuck at the start: the motor's net drive torque lies inside the breakaway interval
+    # [−(Tsn + Tssn1), Tsp + Tssp1] with a margin that friction would stop the estimated velocity
+    # with inside one sample period (Jeff·|ω| / margin < Δt). Such a motor is at rest at every
+    # sample the record holds, so it starts at rest. (The power-law damping turns a velocity error
+    # δω into a torque error Tst·|δω/N|^α: 0.05 rad/s, a noise excursion of the tachometer over the
+    # first samples, is 1.3 N·m on HD1, and a motor that sticks at once keeps that torsion error
+    # until it breaks away.)
+    net = drive.torque_constant * i0 - T0 / N
+    margin = jnp.minimum(jnp.maximum(p.Tsp + p.Tssp1, 0.0) - net, net + jnp.maximum(p.Tsn + p.Tssn1, 0.0))
+    dt = exp.time[1] - exp.time[0]
+    stuck = (margin > 0) & (p.Jeff * jnp.abs(wm0) < margin * dt)
+    wm0 = jnp.where(stuck, 0.0, wm0)
     th_o0, _ = _line_at_start(exp.time, exp.output_position, exp.mask, n)
     th_o0 = th_o0 * exp.free + exp.output_position[0] * (1 - exp.free) * exp.has_output_position
     wo0 = exp.free * (wm0 / N - dT0 / p.K1)
@@ -385,7 +404,7 @@ def simulate_batch(
     return for_each_experiment(
         lambda e: simulate(p, drive, e, effects=effects, simulator=simulator),
         batch,
-        fixed_cost=isinstance(simulator.solver, VelocityImplicit),
+        fixed_cost=is_fixed_cost(simulator),
     )
 
 

@@ -42,7 +42,7 @@ from ._experiment import Experiment, stack_experiments
 from ._fit import CHANNELS, DEFAULT_FREE, noise_levels
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
-from ._plant import Simulator, Trajectory, simulate
+from ._plant import Simulator, Trajectory, is_fixed_cost, simulate
 from ._sharding import for_each_experiment
 
 
@@ -136,7 +136,8 @@ def _sensitivity_one(p: Parameters, drive: Drive, exp: Experiment, simulator: Si
 @eqx.filter_jit
 def _sensitivities_jit(p, drive, batch, simulator):
     # data enter as arguments, never as closed-over constants (which XLA would try to fold)
-    return for_each_experiment(lambda e: _sensitivity_one(p, drive, e, simulator), batch)
+    return for_each_experiment(lambda e: _sensitivity_one(p, drive, e, simulator), batch,
+                               fixed_cost=is_fixed_cost(simulator))
 
 
 def sensitivities(p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator = Simulator()) -> Sensitivities:
@@ -148,7 +149,8 @@ def sensitivities(p: Parameters, drive: Drive, batch: Experiment, *, simulator: 
 
 @eqx.filter_jit
 def _simulate_lanes_jit(P, drive, lanes, simulator):
-    return for_each_experiment(lambda q, e: simulate(q, drive, e, simulator=simulator), P, lanes)
+    return for_each_experiment(lambda q, e: simulate(q, drive, e, simulator=simulator), P, lanes,
+                               fixed_cost=is_fixed_cost(simulator))
 
 
 def simulate_lanes(P: Parameters, drive: Drive, lanes: Experiment, *, simulator: Simulator = Simulator()) -> Trajectory:
