@@ -351,9 +351,12 @@ def diagnose(
     log(f"diagnose: refining the base model ({base_steps} LM steps on {n_exp} experiments)")
     loose = dataclasses.replace(simulator, rtol=jacobian_rtol, atol=jacobian_rtol * 1e-2)
     base_sim = dataclasses.replace(simulator, rtol=max(simulator.rtol, 1e-5), atol=max(simulator.atol, 1e-7))
-    # the base fit weighs each channel by sensor + process noise (`fit_noise_levels`): by the sensor
-    # noise alone, the current-noise random walk of the free output position dominates its cost
-    base = fit_parameters(p0, drive, batch, free=base_free, simulator=base_sim, max_steps=base_steps)
+    # The base fit weighs each channel by its sensor noise only, not by `fit_noise_levels` (sensor +
+    # process noise, the default of `fit_parameters`): on the independent bench that default moved
+    # the base model so that a free record's misfit dominated the held-out SSE and a hidden
+    # lost_motion was no longer named (tests/test_diagnose_bench.py, 2026-11-25). The loop's own
+    # noise model (step 3) whitens everything after the base fit.
+    base = fit_parameters(p0, drive, batch, free=base_free, simulator=base_sim, max_steps=base_steps, sigma=sigma)
     p_base = base.params
     timing["base_fit"] = time.perf_counter() - t0
 
