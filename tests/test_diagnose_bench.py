@@ -35,8 +35,11 @@ EFFECTS = list(PERIODIC) + [
 ]  # fmt: skip
 
 
-# Not yet named on these small datasets (measured 2026-11-24; issue 18 stays open). Strict: a
-# case that starts to pass must be moved out of this list.
+# Not yet named on these small datasets (reasons measured 2026-11-24; issue 18 stays open). Still
+# failing on 2026-11-25 after the stuck-start fix and after periodic candidates were limited to
+# orders with a spectral peak (which may have removed the spurious low-order ripple some reasons
+# name; the outcome, not named alone, is unchanged). Strict: a case that starts to pass must be
+# moved out of this list.
 NOT_YET = {
     "kinematic_error": "order-2 KE at 4x noise: +9.9 % held-out (folds 4.7 / 18.1 %, all records improved) but "
                        "not significant (a mode made worse beyond chance); nothing named",
