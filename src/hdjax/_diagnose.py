@@ -70,6 +70,7 @@ from scipy.signal import lfilter
 from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PERIODIC, SCALAR, Effects
 from ._experiment import Experiment, stack_experiments
 from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map, white_noise_level
+from ._fit import process_noise as _process_noise
 from ._model import Drive, Parameters
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._sharding import for_each_experiment
@@ -219,22 +220,6 @@ def _solve_normal(JtJ: np.ndarray, Jtr: np.ndarray) -> np.ndarray:
         return np.zeros(0)
     JtJ = JtJ + 1e-9 * np.trace(JtJ) / len(Jtr) * np.eye(len(Jtr))
     return -np.linalg.solve(JtJ, Jtr)
-
-
-def _process_noise(simulate, batch: Experiment, r_ref: np.ndarray, *, realisations: int = 2, seed: int = 0) -> np.ndarray:
-    """Change of the (weighted) residuals when white noise of the recorded current's own noise
-    level is added to the current, shape (realisations, exp, channel, time): samples of the process
-    noise that the current's sensor noise puts into every simulation (the simulation is driven by
-    the recorded current)."""
-    m = np.asarray(batch.mask)
-    cur = np.asarray(batch.current)
-    level = float(np.median([white_noise_level(cur[e][m[e]]) for e in range(cur.shape[0])]))
-    rng = np.random.default_rng(seed)
-    out = []
-    for _ in range(realisations):
-        noisy = eqx.tree_at(lambda b: b.current, batch, jnp.asarray(cur + level * rng.standard_normal(cur.shape) * m))
-        out.append(np.asarray(simulate(noisy)) - r_ref)
-    return np.stack(out)
 
 
 @dataclasses.dataclass(frozen=True)

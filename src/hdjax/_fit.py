@@ -129,29 +129,37 @@ def noise_levels(batch: Experiment) -> jax.Array:
     return jnp.asarray(out)
 
 
+def process_noise(simulate, batch: Experiment, r_ref: np.ndarray, *, realisations: int = 2, seed: int = 0) -> np.ndarray:
+    """Change of the (weighted) residuals when white noise of the recorded current's own noise
+    level is added to the current, shape (realisations, exp, channel, time): samples of the process
+    noise that the current's sensor noise puts into every simulation (the simulation is driven by
+    the recorded current). `simulate(batch)` returns the residuals; `r_ref` is its value on `batch`."""
+    m = np.asarray(batch.mask)
+    cur = np.asarray(batch.current)
+    level = float(np.median([white_noise_level(cur[e][m[e]]) for e in range(cur.shape[0])]))
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(realisations):
+        noisy = eqx.tree_at(lambda b: b.current, batch, jnp.asarray(cur + level * rng.standard_normal(cur.shape) * m))
+        out.append(np.asarray(simulate(noisy)) - r_ref)
+    return np.stack(out)
+
 
 def process_noise_levels(
     p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator, realisations: int = 2, seed: int = 0
 ) -> np.ndarray:
-    """Per-channel RMS of the *process noise* (same units as `noise_levels`): how far the simulation
-    of each channel moves when white noise of the recorded current's own noise level is added to the
-    current, over `realisations` seeded draws at the parameters `p`. The simulation is driven by the
-    recorded current, so that noise makes the simulated motion wander beyond the sensor noise; in
-    free motion the output position does a random walk (after the rigid-body projection of
-    `experiment_residuals`) that can be 10³× the encoder's noise. Position over free records only."""
+    """Per-channel RMS of the *process noise* (same units as `noise_levels`, `process_noise` at the
+    parameters `p`): how far the simulation of each channel moves when white noise of the recorded
+    current's own noise level is added to the current. In free motion the output position does a
+    random walk (after the rigid-body projection of `experiment_residuals`) that can be 10³× the
+    encoder's noise. Position over free records only."""
+    simulate = lambda b: _unit_residuals(p, drive, b, simulator)
+    d = process_noise(simulate, batch, np.asarray(simulate(batch)), realisations=realisations, seed=seed)
     m = np.asarray(batch.mask)
-    cur = np.asarray(batch.current)
-    level = float(np.median([white_noise_level(cur[e][m[e]]) for e in range(cur.shape[0]) if m[e].sum() > 10] or [0.0]))
-    ref = np.asarray(_unit_residuals(p, drive, batch, simulator))
-    rng = np.random.default_rng(seed)
-    sq = np.zeros(3)
-    for _ in range(realisations):
-        noisy = eqx.tree_at(lambda b: b.current, batch, jnp.asarray(cur + level * rng.standard_normal(cur.shape) * m))
-        d = np.asarray(_unit_residuals(p, drive, noisy, simulator)) - ref
-        sq += np.array([np.mean(d[:, c][m] ** 2) if c < 2 else
-                        (np.mean(d[:, 2][m & (np.asarray(batch.free)[:, None] > 0)] ** 2) if np.any(np.asarray(batch.free) > 0) else 0.0)
-                        for c in range(3)])
-    return np.sqrt(sq / realisations)
+    free = m & (np.asarray(batch.free)[:, None] > 0)
+    ms = [np.mean(d[:, :, 0][:, m] ** 2), np.mean(d[:, :, 1][:, m] ** 2),
+          np.mean(d[:, :, 2][:, free] ** 2) if free.any() else 0.0]
+    return np.sqrt(np.asarray(ms))
 
 
 @eqx.filter_jit
