@@ -9,9 +9,15 @@ records, per-experiment LM fits for the plant set) and tuned by `hdjax._tune.run
 validates the tuned controller and both baselines (relay + Ziegler–Nichols PI; model-based MIGO PI
 with feed-forward) on the bench rebuilt from the dataset's truth.yaml.
 
-Prints per drive: bench tracking cost of the three controllers, the improvement of the tuned one
-over each baseline, the tuning cost before/after BFGS (separate from the start search) and the
-time (dataset, fit, tune); then median and worst improvements and the time per drive.
+Prints per drive: bench tracking cost of the three controllers (each the mean over the tune
+command's `validation_runs` noise realisations), the improvement of the tuned one over each
+baseline, the tuning cost before/after BFGS (separate from the start search) and the time (dataset,
+fit, tune); then median and worst improvements and the time per drive.
+
+Column "PI+ffr": the model-based PI baseline with its friction feed-forward moved from the measured
+to the reference's motor velocity (kf = 0, kfr = 1), the controller structure the tuner may choose,
+validated on the same bench runs. It is not one of the issue's baselines; it shows how much of the
+improvement over the model-based PI comes from that structure and how much from tuning.
 
 Usage: `python benchmarks/tune_independent.py [--n 10] [--first 0] [--json FILE]`.
 """
@@ -31,7 +37,27 @@ import numpy as np  # noqa: E402
 from hdjax._bench import make_dataset  # noqa: E402
 from hdjax._data import load_dataset  # noqa: E402
 from hdjax._identify import run_fit  # noqa: E402
-from hdjax._tune import run_tune  # noqa: E402
+from hdjax._control import TorqueController, TorqueGains  # noqa: E402
+from hdjax._tune import _bench_from_truth, _identified, _options, _references, _validate_bench, run_tune  # noqa: E402
+
+
+def structure_only(ds, out: pathlib.Path, r: dict) -> float:
+    """Bench cost (mean over the same validation runs as `run_tune`) of the model-based PI with the
+    reference-velocity friction feed-forward instead of the measured one."""
+    opts = _options({"tune": {}})
+    nominal, *_ = _identified(ds, {}, opts, out, lambda *a: None)
+    ctrl = TorqueController(friction=nominal, drive=ds.drive, sample_period=r["controller"]["sample_period_s"],
+                            current_limit=r["controller"]["current_limit_A"])
+    refs, info = _references(ds, ds.drive, opts, ctrl.sample_period, nominal, ctrl.current_limit)
+    g = TorqueGains(**{**r["baselines"]["model_pi"]["gains"], "kf": 0.0, "kfr": 1.0})
+    bench = _bench_from_truth(ds)
+    costs = []
+    for k in range(int(opts["validation_runs"])):
+        traj, _ = _validate_bench(bench, {"x": g}, refs, ctrl, seed=int(opts["seed"]) + 1000 + k)
+        t = traj["x"]
+        costs.append(np.mean([np.mean((t["reference"][j] - t["torque"][j]) ** 2) / info[j]["amplitude"] ** 2
+                              for j in range(len(refs))]))
+    return float(np.mean(costs))
 
 
 def main() -> int:
@@ -47,7 +73,7 @@ def main() -> int:
     root = pathlib.Path(a.keep or tempfile.mkdtemp(prefix="tune_independent_"))
     rows = []
     quiet = lambda s: None  # noqa: E731
-    print(f"{'drive':>12} | {'ZN':>8} {'MIGO PI':>8} {'tuned':>8} | {'vs ZN':>7} {'vs PI':>7} | "
+    print(f"{'drive':>12} | {'ZN':>8} {'MIGO PI':>8} {'tuned':>8} | {'vs ZN':>7} {'vs PI':>7} | {'PI+ffr':>8} {'vs it':>7} | "
           f"{'BFGS before':>11} {'after':>9} | {'data':>5} {'fit':>5} {'tune':>5} {'total':>6} s")  # fmt: skip
     for j in range(a.first, a.first + a.n):
         drive = "hd1" if j % 2 == 0 else "hd2"
@@ -66,8 +92,9 @@ def main() -> int:
         t_tune = time.time() - t0
         v = r["validation"]
         assert v["on"] == "bench", v["on"]
+        c_ffr = structure_only(ds, d / "out", r)
         row = {
-            "drive": drive, "seed": seed,
+            "drive": drive, "seed": seed, "model_pi_reference_ff": c_ffr,
             "cost": {c: v[c]["tracking_cost"] for c in ("relay_zn", "model_pi", "tuned")},
             "improvement": v["improvement_over"],
             "bfgs_before": r["tuning"]["cost_before_optimiser"], "bfgs_after": r["tuning"]["cost_after_optimiser"],
@@ -79,7 +106,8 @@ def main() -> int:
         rows.append(row)
         c, im, tt = row["cost"], row["improvement"], row["time"]
         print(f"{drive + '-' + str(seed):>12} | {c['relay_zn']:8.4g} {c['model_pi']:8.4g} {c['tuned']:8.4g} | "
-              f"{100 * im['relay_zn']:6.1f}% {100 * im['model_pi']:6.1f}% | {row['bfgs_before']:11.4g} "
+              f"{100 * im['relay_zn']:6.1f}% {100 * im['model_pi']:6.1f}% | {c_ffr:8.4g} {100 * (1 - c['tuned'] / c_ffr):6.1f}% | "
+              f"{row['bfgs_before']:11.4g} "
               f"{row['bfgs_after']:9.4g} | {tt['data']:5.1f} {tt['fit']:5.1f} {tt['tune']:5.1f} {tt['total']:6.1f}",
               flush=True)  # fmt: skip
     zn = np.array([r["improvement"]["relay_zn"] for r in rows])
@@ -92,6 +120,9 @@ def main() -> int:
     print(f"improvement over model-based PI:  median {100 * np.median(pi):.1f} %, worst {100 * pi.min():.1f} %")
     print(f"improvement over the better one:  median {100 * np.median(better):.1f} %, worst {100 * better.min():.1f} % "
           f"({int(np.sum(better < 0))} drive(s) worse)")  # fmt: skip
+    ffr = np.array([1 - r["cost"]["tuned"] / r["model_pi_reference_ff"] for r in rows])
+    print(f"over the PI with reference-velocity friction ff (structure only): median {100 * np.median(ffr):.1f} %, "
+          f"worst {100 * ffr.min():.1f} %")
     print(f"BFGS step alone (tuning model):   median {100 * np.median(gd):.1f} % lower cost, min {100 * gd.min():.1f} %")
     print(f"time per drive (dataset + fit + tune): median {np.median(tot):.0f} s, max {tot.max():.0f} s")
     if a.json:

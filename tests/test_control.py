@@ -54,17 +54,17 @@ def test_gradient_matches_central_differences():
     def cost(theta):
         g = TorqueGains(
             kp=0.2 * jnp.exp(theta[0]), ki=100.0 * jnp.exp(theta[1]), kd=1e-4 * theta[2], kr=theta[3], kf=theta[4], kj=theta[5],
-            kpf=jnp.exp(theta[6]), kif=jnp.exp(theta[7]),
+            kpf=jnp.exp(theta[6]), kif=jnp.exp(theta[7]), kfr=theta[8],
         )
         run = lambda r, a, b: closed_loop(g, plant, r, controller=ctrl, noise=(a, b), substeps=2, smoothing=SM)  # noqa: E731
         tr = jax.vmap(run)(R, noise[0], noise[1])
         return jnp.mean((tr.reference - tr.torque) ** 2, axis=1) / 100.0
 
-    th = jnp.array([0.1, -0.2, 0.5, 0.3, 0.5, 0.7, 0.2, -0.3])
+    th = jnp.array([0.1, -0.2, 0.5, 0.3, 0.5, 0.7, 0.2, -0.3, 0.4])
     g = np.asarray(jax.jit(jax.jacrev(cost))(th))  # (reference, gain)
     f = jax.jit(cost)
     h = 1e-5
-    fd = np.stack([(f(th.at[i].add(h)) - f(th.at[i].add(-h))) / (2 * h) for i in range(8)], axis=1)
+    fd = np.stack([(f(th.at[i].add(h)) - f(th.at[i].add(-h))) / (2 * h) for i in range(9)], axis=1)
     assert np.all(np.isfinite(g))
     for j in range(2):
         assert (abs(fd[j, 5]) > 1e-3 * np.abs(fd[j]).max()) == bool(j), fd[j]
@@ -103,3 +103,51 @@ def test_relay_without_oscillation_is_refused():
     tr = closed_loop(TorqueGains(kp=0.0, ki=0.0), plant, step_reference(0.0, duration=0.2), controller=_setup()[1])
     with pytest.raises(ValueError, match="relay test: no sustained oscillation"):
         ziegler_nichols_pi(tr, level=5.0, amplitude=1.0)
+
+
+def test_reference_motor_velocity_is_the_velocity_the_model_runs_at():
+    """`kfr` feeds friction forward at the motor velocity the reference asks for. On the model with
+    its own parameters and a PI that tracks, that velocity must be the simulated motor velocity: the
+    identified compliance (K1 and the power-law damping, not r'/K1 alone) on a locked sine, plus the
+    load's velocity on a free one."""
+    from hdjax._control import reference_motor_velocity
+
+    plant, ctrl = _setup()
+    N, JL = float(plant.drive.gear_ratio), float(plant.drive.load_inertia)
+    g = TorqueGains(kp=0.3, ki=150.0, kr=1.0, kf=1.0, kj=1.0)
+    for ref in (sine_reference(10.0, 3.0, duration=0.4), sine_reference(3.0, 2.0, duration=0.4, free=True)):
+        tr = closed_loop(g, plant, ref, controller=ctrl, substeps=4, smoothing=SM)
+        r = np.asarray(ref.torque)
+        th, v, wr = 0.0, 0.0, []
+        for k in range(len(r)):
+            w, th = reference_motor_velocity(r[k], th, v, plant.parameters, N=N, ts=1e-3)
+            wr.append(float(w))
+            v += 1e-3 * r[k] / JL * float(ref.free)
+        wm = np.asarray(tr.motor_velocity)
+        err = np.sqrt(np.mean((np.array(wr) - wm) ** 2)) / np.sqrt(np.mean(wm**2))
+        assert err < 0.05, (float(ref.free), err)
+        # r'/K1 alone (no damping) is far off on the locked sine: the check above can fail
+        if not float(ref.free):
+            naive = N * np.diff(r, prepend=0.0) / (float(plant.parameters.K1) * 1e-3)
+            assert np.sqrt(np.mean((naive - wm) ** 2)) / np.sqrt(np.mean(wm**2)) > 0.3
+
+
+def test_numpy_law_equals_the_jax_law():
+    """The bench runs the controller through `numpy_torque_law`; fed the same measurements it must
+    command the same current as `closed_loop`'s law, for every gain (kfr and the free schedule included)."""
+    from hdjax._control import numpy_torque_law
+
+    plant, ctrl = _setup()
+    gains = [TorqueGains(kp=0.3, ki=150.0, kd=1e-4, kr=0.9, kf=0.4, kj=1.1, kpf=0.5, kif=0.7, kfr=0.6),
+             TorqueGains(kp=0.2, ki=80.0, kr=1.0, kf=1.0, kj=1.0)]
+    refs = [step_reference(8.0, duration=0.15), sine_reference(3.0, 4.0, duration=0.15, free=True)]
+    rng = np.random.default_rng(3)
+    for g in gains:
+        for ref in refs:
+            n = ref.torque.shape[0]
+            noise = (rng.normal(size=n) * 0.05, rng.normal(size=n) * 0.02)
+            tr = closed_loop(g, plant, ref, controller=ctrl, noise=noise, substeps=2, smoothing=SM)
+            law = numpy_torque_law([g], ctrl, np.array([bool(float(ref.free))]))
+            i_np = [float(law(k, np.array([float(ref.torque[k])]), np.array([float(tr.measured_torque[k])]),
+                              np.array([float(tr.motor_velocity[k]) + noise[1][k]]))[0]) for k in range(n)]
+            np.testing.assert_allclose(i_np, np.asarray(tr.current), rtol=1e-9, atol=1e-9)

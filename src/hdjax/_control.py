@@ -73,6 +73,13 @@ class TorqueGains(eqx.Module):
       inertia $J_L$; zero with the output locked ($J_L = \\infty$).
     - `kpf`, `kif`: multipliers of `kp` and `ki` with a free output (-; 1 = the same PI locked and
       free): a two-mode gain schedule, since the controller knows whether the output is clamped.
+    - `kfr`: weight of the friction feed-forward $\\hat T_f(\\omega_r)/K_m$ evaluated at the motor
+      velocity the *reference* asks for (-; 0 = off), $\\omega_r = N(\\dot{\\Delta\\theta}_r + v_r)$
+      with $\\dot{\\Delta\\theta}_r$ the torsion rate of the identified compliance following $r$
+      (`reference_motor_velocity`) and $v_r = \\int r\\,dt/J_L$ the output velocity of a free load
+      that follows $r$ (0 locked).
+      Unlike `kf`'s measured velocity it is noise-free and known before the motor moves, so it
+      pushes through breakaway at once and does not act on a motor at rest under a held torque.
     """
 
     kp: Float[Array, ""] = eqx.field(converter=_as_float)
@@ -83,14 +90,15 @@ class TorqueGains(eqx.Module):
     kj: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
     kpf: Float[Array, ""] = eqx.field(converter=_as_float, default=1.0)
     kif: Float[Array, ""] = eqx.field(converter=_as_float, default=1.0)
+    kfr: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
 
     def to_dict(self) -> dict[str, float]:
         return {k: float(getattr(self, k)) for k in GAIN_NAMES}
 
 
-GAIN_NAMES = ("kp", "ki", "kd", "kr", "kf", "kj", "kpf", "kif")
+GAIN_NAMES = ("kp", "ki", "kd", "kr", "kf", "kj", "kpf", "kif", "kfr")
 GAIN_UNITS = {"kp": "A/(N·m)", "ki": "A/(N·m·s)", "kd": "A·s/(N·m)", "kr": "-", "kf": "-", "kj": "-", "kpf": "-",
-              "kif": "-"}  # fmt: skip
+              "kif": "-", "kfr": "-"}  # fmt: skip
 
 
 class TorqueController(eqx.Module):
@@ -324,26 +332,53 @@ def closed_loop(
     kp = gains.kp * (1.0 + reference.free * (gains.kpf - 1.0))
     ki = gains.ki * (1.0 + reference.free * (gains.kif - 1.0))
 
+    inv_load = reference.free / controller.drive.load_inertia
+
     def law(state, r_k, y_meas, w_meas):
-        integ, dfilt, y_prev, first = state
+        integ, dfilt, y_prev, first, torsion_ref, v_ref = state
         e = r_k - y_meas
         # derivative of the measured torque; the first sample has no predecessor
         dfilt = a * dfilt + (1.0 - a) * (1.0 - first) * (y_meas - y_prev) / ts
+        w_ref, torsion_ref = reference_motor_velocity(r_k, torsion_ref, v_ref, controller.friction, N=N, ts=ts)
         ff = (
             gains.kr * r_k / (N * Km)
             + gains.kj * inertia_ff * r_k / Km
             + gains.kf * friction_torque(controller.friction, w_meas, ff_smoothing) / Km
+            + gains.kfr * friction_torque(controller.friction, w_ref, ff_smoothing) / Km
         )
         u = ff + kp * e + integ - gains.kd * dfilt
         i = smooth_saturation(u, controller.current_limit, controller.saturation_scale)
         integ = integ + ki * ts * e + controller.anti_windup * (i - u)
-        return (integ, dfilt, y_meas, jnp.zeros(())), i, u
+        return (integ, dfilt, y_meas, jnp.zeros(()), torsion_ref, v_ref + ts * r_k * inv_load), i, u
 
     zero = jnp.zeros(())
     return _run_loop(
-        law, (zero, zero, zero, jnp.ones(())), plant, reference, sample_period=ts, noise=noise, substeps=substeps,
-        smoothing=smoothing, refine=refine,
+        law, (zero, zero, zero, jnp.ones(()), zero, zero), plant, reference, sample_period=ts, noise=noise,
+        substeps=substeps, smoothing=smoothing, refine=refine,
     )  # fmt: skip
+
+
+def reference_torsion_rate(r, torsion, p: Parameters):
+    """Flexspline torsion rate (rad/s) that brings the identified compliance to the torque `r` (N·m)
+    from the torsion `torsion` (rad): eq. 2 solved for the rate,
+    $\\dot{\\Delta\\theta} = \\mathrm{sign}(e)\\,(|e|/T_{st})^{1/\\alpha}$ with $e = r - K_1\\Delta\\theta$
+    (the power-law damping carries what the spring does not)."""
+    e = r - p.K1 * torsion
+    a = jnp.maximum(jnp.abs(e), 1e-12)  # |e|^(1/α) has a zero derivative at 0; keep log|e| finite for α
+    return jnp.sign(e) * (a / p.Tst) ** (1.0 / p.alpha)
+
+
+def reference_motor_velocity(r, torsion, v_ref, p: Parameters, *, N, ts, substeps: int = 4):
+    """Wave-generator velocity (rad/s) that a torque reference asks for, and the next reference
+    torsion: $\\omega_r = N(\\dot{\\Delta\\theta}_r + v_r)$ with the torsion rate of the identified
+    compliance (`reference_torsion_rate`, explicit Euler over `substeps` per sample period `ts`) and
+    $v_r$ (rad/s) the output velocity of a free load driven by $r$ (0 with the output locked)."""
+    h = ts / substeps
+    rate0 = reference_torsion_rate(r, torsion, p)
+    th = torsion
+    for _ in range(substeps):
+        th = th + h * reference_torsion_rate(r, th, p)
+    return N * (rate0 + v_ref), th
 
 
 def relay_test(
@@ -444,23 +479,23 @@ class GainScaling(eqx.Module):
     """Map between the optimiser's unconstrained, O(1) vector θ and `TorqueGains`:
     $k_p = k_{p0}e^{\\theta_0}$, $k_i = k_{i0}e^{\\theta_1}$ (kept positive),
     $k_d = k_{p0}\\,T_d\\,\\theta_2$, $k_r = \\theta_3$, $k_f = \\theta_4$, $k_j = \\theta_5$,
-    $k_{pf} = e^{\\theta_6}$, $k_{if} = e^{\\theta_7}$."""
+    $k_{pf} = e^{\\theta_6}$, $k_{if} = e^{\\theta_7}$, $k_{fr} = \\theta_8$."""
 
     kp0: float
     ki0: float
     derivative_time: float
 
-    def gains(self, theta: Float[Array, " 8"]) -> TorqueGains:
+    def gains(self, theta: Float[Array, " 9"]) -> TorqueGains:
         return TorqueGains(
             kp=self.kp0 * jnp.exp(theta[0]), ki=self.ki0 * jnp.exp(theta[1]),
             kd=self.kp0 * self.derivative_time * theta[2], kr=theta[3], kf=theta[4], kj=theta[5],
-            kpf=jnp.exp(theta[6]), kif=jnp.exp(theta[7]),
+            kpf=jnp.exp(theta[6]), kif=jnp.exp(theta[7]), kfr=theta[8],
         )  # fmt: skip
 
-    def theta(self, g: TorqueGains) -> Float[Array, " 8"]:
+    def theta(self, g: TorqueGains) -> Float[Array, " 9"]:
         return jnp.stack([
             jnp.log(g.kp / self.kp0), jnp.log(g.ki / self.ki0), g.kd / (self.kp0 * self.derivative_time), g.kr, g.kf,
-            g.kj, jnp.log(g.kpf), jnp.log(g.kif),
+            g.kj, jnp.log(g.kpf), jnp.log(g.kif), g.kfr,
         ])  # fmt: skip
 
 
@@ -623,7 +658,9 @@ def numpy_torque_law(gains: list[TorqueGains], controller: TorqueController, fre
     a = float(np.exp(-ts / controller.derivative_filter))
     inertia_ff = np.asarray(free, float) * N * float(controller.friction.Jeff) / float(controller.drive.load_inertia)
     ff_sm = Smoothing(velocity_scale=controller.friction_scale)
-    st = {"I": np.zeros(len(gains)), "d": np.zeros(len(gains)), "y": np.zeros(len(gains)), "first": 1.0}
+    st = {"I": np.zeros(len(gains)), "d": np.zeros(len(gains)), "y": np.zeros(len(gains)), "first": 1.0,
+          "torsion": np.zeros(len(gains)), "v": np.zeros(len(gains))}
+    inv_load = np.asarray(free, float) / float(controller.drive.load_inertia)
 
     fr = np.asarray(free, float)
     kp = g["kp"] * (1.0 + fr * (g["kpf"] - 1.0))
@@ -633,12 +670,17 @@ def numpy_torque_law(gains: list[TorqueGains], controller: TorqueController, fre
         e = r - y
         st["d"] = a * st["d"] + (1.0 - a) * (1.0 - st["first"]) * (y - st["y"]) / ts
         Tf = np.asarray(friction_torque(controller.friction, jnp.asarray(w), ff_sm))
-        ff = g["kr"] * r / (N * Km) + g["kj"] * inertia_ff * r / Km + g["kf"] * Tf / Km
+        w_ref, th = reference_motor_velocity(jnp.asarray(r, float), jnp.asarray(st["torsion"]), 0.0, controller.friction, N=N, ts=ts)
+        w_ref = np.asarray(w_ref) + N * st["v"]
+        st["torsion"] = np.array(th)
+        Tfr = np.asarray(friction_torque(controller.friction, jnp.asarray(w_ref), ff_sm))
+        ff = g["kr"] * r / (N * Km) + g["kj"] * inertia_ff * r / Km + g["kf"] * Tf / Km + g["kfr"] * Tfr / Km
         u = ff + kp * e + st["I"] - g["kd"] * st["d"]
         lim, s = controller.current_limit, controller.saturation_scale
         i = u - s * (np.logaddexp(0.0, (u - lim) / s) - np.logaddexp(0.0, (-u - lim) / s))
         st["I"] = st["I"] + ki * ts * e + controller.anti_windup * (i - u)
         st["y"], st["first"] = y, 0.0
+        st["v"] = st["v"] + ts * r * inv_load
         return i
 
     return law

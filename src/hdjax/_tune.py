@@ -23,16 +23,22 @@ Steps (all SI units):
    sensitivity peak Ms ≤ `tune.model_pi_ms`) on the linearised sampled locked and free plants
    (`hdjax._loopshape`), with the model's reference, inertia and friction feed-forward.
 5. Robust tuning of kp, ki, kd, the feed-forward weights and a free-output gain schedule (kpf,
-   kif multiply kp, ki when the output is free): plant parameter sets drawn from the
-   per-experiment estimates; cost = tracking
+   kif multiply kp, ki when the output is free), and of where the friction feed-forward is
+   evaluated: at the measured motor velocity (kf, as the model-based PI baseline) or at the
+   velocity the reference asks for (kfr; `hdjax._control.reference_motor_velocity`). Plant
+   parameter sets drawn from the per-experiment estimates, with their friction scaled by
+   1 ± `tune.friction_uncertainty` (the feed-forward keeps the identified friction); cost = tracking
    cost averaged over plants and references (`vmap`) + `tune.margin_weight`·Σ max(0, Ms − `tune.ms_max`)²
    over the linearised locked and free loops of every plant set. A start search over the baselines
-   and scaled model-based PIs, then BFGS from the best `tune.starts` candidates (multi-start).
+   and scaled model-based PIs (with either friction feed-forward), then BFGS from the best
+   `tune.starts` candidates (multi-start).
 6. Validation, never on the model that was tuned. When the dataset's `truth.yaml` was written by
    the independent bench `hdjax._bench`, the bench is rebuilt from it and the three controllers
    run on its own physics (stick–slip, current loop, sensor dynamics, hidden effects, its own
    noise). Otherwise (a user's data) they run on the identified model with the estimated noise,
-   and the report and figures say "identified model".
+   and the report and figures say "identified model". Every cost is the mean over
+   `tune.validation_runs` runs with independent noise: on the bench one run's cost of the same
+   controller varied by up to 2x (stick–slip at the start of a free reference).
 """
 
 import json
@@ -86,6 +92,7 @@ DEFAULTS = {
     "scale_references": True,  # scale the requested references to what the model can follow under the limit
     "headroom": 0.7,  # feed-forward current of a scaled reference / current limit
     "plants": 6,  # plant parameter sets drawn for the robust cost
+    "friction_uncertainty": 0.2,  # friction of plant sets 2.. scaled by 1 ± this (the feed-forward keeps the fit's)
     "seed": 0,
     "max_steps": 8,  # BFGS steps per start
     "max_first_step": 0.05,  # cap of the (start-cost-normalised) gradient norm: BFGS's first trial step in log-gains
@@ -100,6 +107,7 @@ DEFAULTS = {
     "effort_weight": 0.01,
     "relay_amplitude": 0.25,  # relay amplitude / current limit
     "rig_substeps": 16,  # Rodas3 steps per sample when validating on the identified model (user data)
+    "validation_runs": 5,  # validation runs with independent noise, averaged (one run's cost varies by up to ~2x)
 }
 REFERENCE_NAMES = ("locked_step", "locked_sine", "free_step", "free_sine")
 CONTROLLERS = ("relay_zn", "model_pi", "tuned")
@@ -112,11 +120,13 @@ def _options(config: dict) -> dict:
               "headroom", "ms_max", "model_pi_ms", "max_first_step"):  # fmt: skip
         if not isinstance(out[k], (int, float)) or out[k] <= 0:
             raise ValueError(f"config `tune.{k}` must be a positive number, got {out[k]!r}.")
+    if not isinstance(out["friction_uncertainty"], (int, float)) or not 0 <= out["friction_uncertainty"] < 1:
+        raise ValueError(f"config `tune.friction_uncertainty` must be a number in [0, 1), got {out['friction_uncertainty']!r}.")
     if not isinstance(out["margin_weight"], (int, float)) or out["margin_weight"] < 0:
         raise ValueError(f"config `tune.margin_weight` must be a number >= 0, got {out['margin_weight']!r}.")
     if not isinstance(out["scale_references"], bool):
         raise ValueError(f"config `tune.scale_references` must be true or false, got {out['scale_references']!r}.")
-    for k in ("plants", "max_steps", "substeps", "rig_substeps", "starts"):
+    for k in ("plants", "max_steps", "substeps", "rig_substeps", "starts", "validation_runs"):
         if not isinstance(out[k], int) or out[k] < 1:
             raise ValueError(f"config `tune.{k}` must be a positive integer, got {out[k]!r}.")
     f = out["start_factors"]
@@ -207,12 +217,22 @@ def _identified(dataset: Dataset, config: dict, opts: dict, out: pathlib.Path, l
     return Parameters.from_dict(params), effects, per, (float(nl["torque"]), float(nl["motor_velocity"])), source
 
 
-def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, seed: int = 0) -> Parameters:
+FRICTION_NAMES = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")
+
+
+def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, seed: int = 0,
+                        friction_uncertainty: float = 0.0) -> Parameters:
     """`n` plant parameter sets (stacked leaves, leading axis `plant`), the first the nominal one.
     Each parameter is drawn independently from its per-experiment estimates (None/NaN skipped),
     recentred on the nominal value: multiplicatively ($v\\,e_j/\\bar e$) when the estimates share a
     sign, additively otherwise, so the spread is the fit's consistency and the centre the best
-    estimate. Parameters with fewer than two estimates stay nominal."""
+    estimate. Parameters with fewer than two estimates stay nominal.
+
+    `friction_uncertainty` $u$ (-): plant $j \\ge 1$ also has all its eq. 9 friction terms
+    (`FRICTION_NAMES`) multiplied by a common factor $1 + u\\,z_j$, the $z_j$ spread evenly over
+    $[-1, 1]$ (so the set holds the friction $u$ above and below the identified one). The
+    controller's friction feed-forward keeps the identified values: a controller that leans on
+    it is charged for friction that drifts with temperature and wear, or that the fit got wrong."""
     rng = np.random.default_rng(seed)
     out = {}
     for k in PARAMETER_NAMES:
@@ -227,8 +247,13 @@ def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, se
                 col[1:] = v * pick / m
             else:
                 col[1:] = v + pick - m
-        out[k] = jnp.asarray(col)
-    return Parameters(**out)
+        out[k] = col
+    if friction_uncertainty > 0 and n > 1:
+        z = np.linspace(-1.0, 1.0, n - 1) if n > 2 else np.ones(1)
+        z = rng.permutation(z)
+        for k in FRICTION_NAMES:
+            out[k][1:] *= 1.0 + friction_uncertainty * z
+    return Parameters(**{k: jnp.asarray(v) for k, v in out.items()})
 
 
 def _stack(trees):
@@ -337,6 +362,12 @@ def _split_cost(err, current, ilim, amplitude):
     return float(e2.sum() / n), float(e2[sat].sum() / n), float(e2[~sat].sum() / n), float(sat.mean())
 
 
+def _mean_or_none(values):
+    """Mean over the validation runs; None when any run has None (a step metric of a run that never
+    settles), so that one run's failure is not averaged away."""
+    return None if any(x is None for x in values) else float(np.mean(values))
+
+
 def _bench_from_truth(dataset: Dataset):
     truth = dataset.truth or {}
     if not str(truth.get("generator", "")).startswith("hdjax._bench"):
@@ -383,7 +414,8 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     noise = (jnp.asarray(rng.normal(size=(4, n)) * sigma[0]), jnp.asarray(rng.normal(size=(4, n)) * sigma[1]))
     sm = Smoothing(velocity_scale=float(opts["velocity_scale"]), torsion_rate_scale=float(opts["torsion_rate_scale"]))
     nominal_plant = Plant(nominal, drive, effects)
-    plant_sets = draw_parameter_sets(nominal, per, int(opts["plants"]), seed=int(opts["seed"]))
+    plant_sets = draw_parameter_sets(nominal, per, int(opts["plants"]), seed=int(opts["seed"]),
+                                     friction_uncertainty=float(opts["friction_uncertainty"]))
     params_list = [jax.tree.map(lambda x: x[j], plant_sets) for j in range(int(opts["plants"]))]
     z, Pall, sss, loop_labels = _linear_loops(params_list, drive, ref_info, ts, df)
 
@@ -449,6 +481,12 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
             cands.append((f"model_pi kp x{fp:g}, ki x{fi:g}", TorqueGains(kp=fp * kp_m, ki=fi * ki_m, kr=1.0, kf=1.0, kj=1.0)))
     for ff in (0.5, 0.25):  # the same locked PI, a gentler free one (the torque sensor's noise acts on a small torque)
         cands.append((f"model_pi, free kp, ki x{ff:g}", TorqueGains(kp=kp_m, ki=ki_m, kr=1.0, kf=1.0, kj=1.0, kpf=ff, kif=ff)))
+    # friction fed forward at the reference's velocity instead of the measured one (`TorqueGains.kfr`)
+    for ff in (1.0, 0.5, 0.25):
+        cands.append((f"model_pi, reference-velocity friction ff, free kp, ki x{ff:g}",
+                      TorqueGains(kp=kp_m, ki=ki_m, kr=1.0, kf=0.0, kj=1.0, kpf=ff, kif=ff, kfr=1.0)))
+    cands.append(("model_pi, half measured / half reference-velocity friction ff",
+                  TorqueGains(kp=kp_m, ki=ki_m, kr=1.0, kf=0.5, kj=1.0, kfr=0.5)))
     search = []
     with task(log, "start search (baselines and scaled model-based PIs)", len(cands), unit="candidates") as bar:
         for name, g in cands:
@@ -495,10 +533,15 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     where = "the independent bench" if bench is not None else "the identified model"
     log(f"[5/6] validation on {where}")
     t0 = time.time()
+    runs = int(opts["validation_runs"])
+    seeds = [int(opts["seed"]) + 1000 + k for k in range(runs)]
     if bench is not None:
-        traj, val_desc = _validate_bench(bench, gains, refs, ctrl, seed=int(opts["seed"]) + 1000)
+        trajs = [_validate_bench(bench, gains, refs, ctrl, seed=sd) for sd in seeds]
     else:
-        traj, val_desc = _validate_model(nominal_plant, gains, R, ctrl, sigma, n, opts)
+        trajs = _validate_model(nominal_plant, gains, R, ctrl, sigma, n, opts, seeds=seeds)
+    traj, val_desc = trajs[0]
+    val_desc += (f"; every figure is the mean over {runs} runs with independent noise (seeds {seeds[0]}-{seeds[-1]}), "
+                 "the figures show the first") if runs > 1 else ""
     timing["validation"] = time.time() - t0
     sim = jax.jit(
         lambda g: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b), substeps=int(opts["substeps"]), smoothing=sm))(
@@ -507,27 +550,36 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     )(tuned)
     val = {}
     for name in CONTROLLERS:
-        tr = traj[name]
-        per_ref = {}
-        for j, info in enumerate(ref_info):
-            err = np.asarray(tr["reference"][j]) - np.asarray(tr["torque"][j])
-            cur = np.asarray(tr["current"][j])
-            tot, sat, unsat, fsat = _split_cost(err, np.asarray(tr["command_limited"][j]), ilim, info["amplitude"])
-            row = {
-                "tracking_cost": tot,
-                "tracking_cost_saturated": sat,
-                "tracking_cost_unsaturated": unsat,
-                "saturated_fraction": fsat,
-                "tracking_rms_Nm": float(np.sqrt(np.mean(err**2))),
-                "measured_tracking_rms_Nm": float(np.sqrt(np.mean((np.asarray(tr["reference"][j]) - np.asarray(tr["measured_torque"][j])) ** 2))),
-                "current_rms_A": float(np.sqrt(np.mean(cur**2))),
-                "current_peak_A": float(np.max(np.abs(cur))),
-            }
-            if "step" in info:
-                row.update(step_metrics(tr["time"][j], tr["torque"][j], amplitude=info["amplitude"], start=info["step"][0], end=info["step"][1]))
-            per_ref[info["name"]] = row
+        rows_runs = []
+        for tr_all, _ in trajs:
+            tr = tr_all[name]
+            per_ref = {}
+            for j, info in enumerate(ref_info):
+                err = np.asarray(tr["reference"][j]) - np.asarray(tr["torque"][j])
+                cur = np.asarray(tr["current"][j])
+                tot, sat, unsat, fsat = _split_cost(err, np.asarray(tr["command_limited"][j]), ilim, info["amplitude"])
+                row = {
+                    "tracking_cost": tot,
+                    "tracking_cost_saturated": sat,
+                    "tracking_cost_unsaturated": unsat,
+                    "saturated_fraction": fsat,
+                    "tracking_rms_Nm": float(np.sqrt(np.mean(err**2))),
+                    "measured_tracking_rms_Nm": float(np.sqrt(np.mean((np.asarray(tr["reference"][j]) - np.asarray(tr["measured_torque"][j])) ** 2))),
+                    "current_rms_A": float(np.sqrt(np.mean(cur**2))),
+                    "current_peak_A": float(np.max(np.abs(cur))),
+                }
+                if "step" in info:
+                    row.update(step_metrics(tr["time"][j], tr["torque"][j], amplitude=info["amplitude"], start=info["step"][0], end=info["step"][1]))
+                per_ref[info["name"]] = row
+            rows_runs.append(per_ref)
+        # mean over the runs of every figure (step metrics included)
+        per_ref = {ref: {k: _mean_or_none([rr[ref][k] for rr in rows_runs]) for k in rows_runs[0][ref]} for ref in rows_runs[0]}
+        for ref in per_ref:
+            per_ref[ref]["tracking_cost_per_run"] = [rr[ref]["tracking_cost"] for rr in rows_runs]
+        run_costs = [float(np.mean([r["tracking_cost"] for r in rr.values()])) for rr in rows_runs]
         val[name] = {
-            "tracking_cost": float(np.mean([r["tracking_cost"] for r in per_ref.values()])),
+            "tracking_cost": float(np.mean(run_costs)),
+            "tracking_cost_per_run": run_costs,
             "tracking_cost_saturated": float(np.mean([r["tracking_cost_saturated"] for r in per_ref.values()])),
             "references": per_ref,
         }
@@ -545,7 +597,7 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
         "dataset": dataset.name,
         "identification": {"source": source, "parameters": nominal.to_dict(), "effects": sorted(effects.active)},
         "controller": {
-            "law": "i = sat(kr*r/(N*Km) + kj*N*Jeff_hat*r/(J_L*Km) + kp*e + I - kd*dy_f + kf*Tf_hat(w)/Km) (J_L = load inertia, infinite when locked), e = r - y, back-calculation anti-windup",
+            "law": "i = sat(kr*r/(N*Km) + kj*N*Jeff_hat*r/(J_L*Km) + kp*e + I - kd*dy_f + kf*Tf_hat(w)/Km + kfr*Tf_hat(w_r)/Km) (J_L = load inertia, infinite when locked; w_r = N*(torsion rate of the identified compliance following r + integral of r/J_L), the motor velocity the reference asks for), e = r - y, back-calculation anti-windup",
             "sample_period_s": ts,
             "current_limit_A": ilim,
             "derivative_filter_s": df,
@@ -628,22 +680,26 @@ def _validate_bench(bench, gains: dict, refs, ctrl: TorqueController, *, seed: i
     return traj, desc
 
 
-def _validate_model(nominal_plant: Plant, gains: dict, R, ctrl: TorqueController, sigma, n, opts):
-    rng2 = np.random.default_rng(int(opts["seed"]) + 1000)
-    nz = (jnp.asarray(rng2.normal(size=(4, n)) * sigma[0]), jnp.asarray(rng2.normal(size=(4, n)) * sigma[1]))
+def _validate_model(nominal_plant: Plant, gains: dict, R, ctrl: TorqueController, sigma, n, opts, *, seeds) -> list:
+    """Every controller on the identified model, one run per noise seed: [(traj, description)]."""
     sub = int(opts["rig_substeps"])
-    run = jax.jit(lambda g: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b), substeps=sub))(
-        R, nz[0], nz[1]))  # fmt: skip
-    traj = {}
-    for c, g in gains.items():
-        tr = run(g)
-        traj[c] = {"time": np.asarray(tr.time), "reference": np.asarray(tr.reference), "torque": np.asarray(tr.torque),
-                   "measured_torque": np.asarray(tr.measured_torque), "current": np.asarray(tr.current),
-                   "command_limited": np.asarray(tr.current)}  # fmt: skip
+    run = jax.jit(lambda g, nT, nw: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b), substeps=sub))(
+        R, nT, nw))  # fmt: skip
     desc = ("this dataset has no truth.yaml written by hdjax._bench, so the controllers are "
             f"validated on the identified model ({sub} Rodas3 substeps per sample, estimated sensor noise); this is not a "
             "test on hardware: run the tuned gains on the real drive")  # fmt: skip
-    return traj, desc
+    out = []
+    for seed in seeds:
+        rng2 = np.random.default_rng(seed)
+        nT, nw = jnp.asarray(rng2.normal(size=(4, n)) * sigma[0]), jnp.asarray(rng2.normal(size=(4, n)) * sigma[1])
+        traj = {}
+        for c, g in gains.items():
+            tr = run(g, nT, nw)
+            traj[c] = {"time": np.asarray(tr.time), "reference": np.asarray(tr.reference), "torque": np.asarray(tr.torque),
+                       "measured_torque": np.asarray(tr.measured_torque), "current": np.asarray(tr.current),
+                       "command_limited": np.asarray(tr.current)}  # fmt: skip
+        out.append((traj, desc))
+    return out
 
 
 COLORS = {"relay_zn": "tab:orange", "model_pi": "tab:purple", "tuned": "tab:blue"}
