@@ -151,3 +151,16 @@ def test_numpy_law_equals_the_jax_law():
             i_np = [float(law(k, np.array([float(ref.torque[k])]), np.array([float(tr.measured_torque[k])]),
                               np.array([float(tr.motor_velocity[k]) + noise[1][k]]))[0]) for k in range(n)]
             np.testing.assert_allclose(i_np, np.asarray(tr.current), rtol=1e-9, atol=1e-9)
+
+
+def test_step_metrics_refuse_an_empty_window():
+    """A doublet whose width equals its edge time has no plateau: asking for its step metrics is an
+    error with the window named (it was a bare numpy 'zero-size array' error from `hdjax tune` on the
+    shipped HD2 data)."""
+    from hdjax._control import step_metrics
+
+    t = np.arange(100) * 1e-3
+    with pytest.raises(ValueError, match=r"no sample in the step window \[0.05, 0.05\)"):
+        step_metrics(t, np.ones(100), amplitude=1.0, start=0.05, end=0.05)
+    m = step_metrics(t, np.ones(100), amplitude=1.0, start=0.02, end=0.08)
+    assert m["overshoot_percent"] == 0.0 and m["settling_time_s"] == 0.0

@@ -453,6 +453,8 @@ def step_metrics(
     t = np.asarray(time)
     y = np.asarray(torque)
     win = (t >= start) & (t < end)
+    if not win.any():
+        raise ValueError(f"`step_metrics`: no sample in the step window [{start:g}, {end:g}) s; give an `end` after `start`.")
     tw, yw = t[win], y[win]
     s = np.sign(amplitude)
     overshoot = max(0.0, float(np.max(s * yw) - abs(amplitude))) / abs(amplitude) * 100.0

@@ -314,7 +314,11 @@ def _references(dataset: Dataset, drive, opts: dict, ts: float, nominal: Paramet
         if name == "locked_step":
             row["step"] = (0.02 + rise, dur)
         if name == "free_step":
-            row["step"] = (0.02 + rise, 0.02 + extra["width_s"])
+            if extra["width_s"] - rise >= 10 * ts:
+                row["step"] = (0.02 + rise, 0.02 + extra["width_s"])
+            else:  # the speed bound leaves no plateau between the edges: no overshoot or settling to measure
+                row["note"] = ("no plateau between the doublet's edges (the recorded speed bounds the width to the "
+                               "edge time): no step metrics")
         refs.append(ref)
         info.append(row)
     return refs, info
