@@ -149,3 +149,29 @@ def test_default_output_folders():
     assert _cli.default_out("diagnose", "data/hd1") == pathlib.Path("results/hd1-diagnosis")
     assert _cli.default_out("sensitivity", "configs/hd2.yaml") == pathlib.Path("results/hd2-sensitivity")
     assert _cli.default_out("tune", "data/hd2/dataset.yaml") == pathlib.Path("results/hd2-tune")
+
+
+@pytest.mark.parametrize("command", ["diagnose", "tune"])
+def test_fit_cutoff_reaches_the_paper_identification_of_every_command(command, monkeypatch, tmp_path):
+    """`fit.cutoff_hz` (and alpha, Tss2) of the config reach the paper's regressions in `diagnose`
+    and `tune` as they do in `fit` and `sensitivity` (both dropped it before)."""
+    from hdjax import _diagnose_report, _paper_id, _tune
+    from hdjax._data import load_dataset
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def spy(exps, drive, **kw):
+        seen.update(kw)
+        raise Stop
+
+    monkeypatch.setattr(_paper_id, "identify_paper", spy)
+    monkeypatch.setattr(_diagnose_report, "identify_paper", spy)
+    ds = load_dataset(_repo() / "data" / "hd2")
+    config = {"fit": {"cutoff_hz": 30.0, "alpha": 0.6, "Tss2": 0.2}}
+    run = _diagnose_report.run_diagnose if command == "diagnose" else _tune.run_tune
+    with pytest.raises(Stop):
+        run(ds, config, tmp_path / "out", log=lambda *a: None)
+    assert seen == {"alpha": 0.6, "Tss2": 0.2, "cutoff_hz": 30.0}

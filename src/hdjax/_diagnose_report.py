@@ -131,9 +131,11 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
         )
     exps = [dataset.experiments[i] for i in dyn]
     files = [dataset.files[i] for i in dyn]
-    fit_opts = dict(config.get("fit", {}) or {})
+    from ._identify import _options as fit_options
+
+    fit_opts = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
     log(f"[1/3] paper's identification on {len(exps)} experiments (start of the base model)")
-    paper = identify_paper(exps, dataset.drive, alpha=fit_opts.get("alpha", 0.5), Tss2=fit_opts.get("Tss2", 0.1))
+    paper = identify_paper(exps, dataset.drive, alpha=fit_opts["alpha"], Tss2=fit_opts["Tss2"], cutoff_hz=fit_opts["cutoff_hz"])
     log("[2/3] discrepancy loop (base fit, residual evidence, cross-validated candidates)")
     with DiagnosisProgress(log, opts) as watch:
         d = _run_diagnose(paper, dataset, exps, opts, watch)

@@ -197,9 +197,12 @@ def _identified(dataset: Dataset, config: dict, opts: dict, out: pathlib.Path, l
     else:
         from ._paper_id import identify_paper
 
-        fo = dict(config.get("fit", {}) or {})
+        from ._identify import _options as fit_options
+
+        fo = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
         log("      no fit.json found: running the paper's identification (hdjax._paper_id) on the records")
-        paper = identify_paper([dataset.experiments[i] for i in dyn], dataset.drive, alpha=fo.get("alpha", 0.5), Tss2=fo.get("Tss2", 0.1))
+        paper = identify_paper([dataset.experiments[i] for i in dyn], dataset.drive, alpha=fo["alpha"], Tss2=fo["Tss2"],
+                               cutoff_hz=fo["cutoff_hz"])
         params = paper.parameters().to_dict()
         per = {k: list(paper.per_experiment.get(k) or []) for k in PARAMETER_NAMES}
         nl = {}
