@@ -3,7 +3,6 @@ the PI gains of a torque controller on the HD1 drive (locked output), checked ag
 differences. Run: python experiments/tune_example.py"""
 
 import jax
-import jax.numpy as jnp
 
 
 jax.config.update("jax_enable_x64", True)

@@ -3,7 +3,6 @@ on a hand-computed linear example, and the command's outputs on a tiny written d
 
 import json
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest

@@ -6,7 +6,6 @@ import pathlib
 import time
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import matplotlib
 

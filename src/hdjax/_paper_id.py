@@ -495,7 +495,6 @@ def identify_paper(
                 )
 
     # ---- friction, high velocity ------------------------------------------------------------
-    Km = float(drive.torque_constant)
     threshold = high_velocity_factor * Tss2
     details["high_velocity_samples"] = {"positive": [0] * n_exp, "negative": [0] * n_exp}
     if free_idx.size == 0:

@@ -420,8 +420,6 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     P = len(names)
     F_e = np.stack([J.T @ J if ok[j] else np.zeros((P, P)) for j, J in enumerate(Js)])
     info = np.sqrt(np.clip(np.einsum("ekk->ek", F_e), 0, None)).T  # (parameter, experiment)
-    mask = np.asarray(batch.mask)
-    S_np = np.asarray(sens.S)
     summary = {}
     for k, name in enumerate(names):
         rms_sig, rms_si = {}, {}
@@ -611,7 +609,7 @@ def _rms(a, b):
 
 def _ablations(p, drive, batch, sens, ok, modes, files, opts, simulator):
     n = len(modes)
-    lanes_idx, lanes_params = [], []
+    lanes_idx = []
     for a, (key, _, mode, change) in enumerate(ABLATIONS):
         for j in range(n):
             if ok[j] and (opts["ablation_both_modes"] or modes[j] == mode):
