@@ -28,7 +28,7 @@ Steps (all SI units):
    velocity the reference asks for (kfr; `hdjax._control.reference_motor_velocity`). Plant
    parameter sets drawn from the per-experiment estimates, with their friction scaled by
    1 ± `tune.friction_uncertainty` (the feed-forward keeps the identified friction); cost = tracking
-   cost averaged over plants and references (`vmap`) + `tune.margin_weight`·Σ max(0, Ms − `tune.ms_max`)²
+   cost averaged over plants, references and `tune.noise_realisations` noise draws (`vmap`) + `tune.margin_weight`·Σ max(0, Ms − `tune.ms_max`)²
    over the linearised locked and free loops of every plant set. A start search over the baselines
    and scaled model-based PIs (with either friction feed-forward), then BFGS from the best
    `tune.starts` candidates (multi-start).
@@ -92,6 +92,7 @@ DEFAULTS = {
     "scale_references": True,  # scale the requested references to what the model can follow under the limit
     "headroom": 0.7,  # feed-forward current of a scaled reference / current limit
     "plants": 6,  # plant parameter sets drawn for the robust cost
+    "noise_realisations": 2,  # measurement-noise realisations per reference in the tuning cost (1: the start search and BFGS chased one noise draw)
     "friction_uncertainty": 0.2,  # friction of plant sets 2.. scaled by 1 ± this (the feed-forward keeps the fit's)
     "seed": 0,
     "max_steps": 8,  # BFGS steps per start
@@ -126,7 +127,7 @@ def _options(config: dict) -> dict:
         raise ValueError(f"config `tune.margin_weight` must be a number >= 0, got {out['margin_weight']!r}.")
     if not isinstance(out["scale_references"], bool):
         raise ValueError(f"config `tune.scale_references` must be true or false, got {out['scale_references']!r}.")
-    for k in ("plants", "max_steps", "substeps", "rig_substeps", "starts", "validation_runs"):
+    for k in ("plants", "max_steps", "substeps", "rig_substeps", "starts", "validation_runs", "noise_realisations"):
         if not isinstance(out[k], int) or out[k] < 1:
             raise ValueError(f"config `tune.{k}` must be a positive integer, got {out[k]!r}.")
     f = out["start_factors"]
@@ -418,7 +419,11 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     scales = jnp.asarray([r["amplitude"] for r in ref_info])
     n = refs[0].torque.shape[0]
     rng = np.random.default_rng(int(opts["seed"]))
-    noise = (jnp.asarray(rng.normal(size=(4, n)) * sigma[0]), jnp.asarray(rng.normal(size=(4, n)) * sigma[1]))
+    K = int(opts["noise_realisations"])
+    # K measurement-noise realisations per reference (common to every plant set and every gain tried)
+    noise_all = (jnp.asarray(rng.normal(size=(4 * K, n)) * sigma[0]), jnp.asarray(rng.normal(size=(4 * K, n)) * sigma[1]))
+    noise = (noise_all[0][:4], noise_all[1][:4])
+    R_cost = _stack(refs * K)
     sm = Smoothing(velocity_scale=float(opts["velocity_scale"]), torsion_rate_scale=float(opts["torsion_rate_scale"]))
     nominal_plant = Plant(nominal, drive, effects)
     plant_sets = draw_parameter_sets(nominal, per, int(opts["plants"]), seed=int(opts["seed"]),
@@ -449,7 +454,10 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
 
     log(f"[4/6] robust tuning: {opts['plants']} plant sets x {len(refs)} references (vmap) + Ms terms on {len(loop_labels)} linearised loops")
     plants = Plant(plant_sets, drive, effects)
-    kw = dict(controller=ctrl, scales=scales, noise=noise, substeps=int(opts["substeps"]), smoothing=sm)
+    kw = dict(controller=ctrl, scales=jnp.tile(scales, K), noise=noise_all, substeps=int(opts["substeps"]), smoothing=sm)
+
+    def per_reference(x):  # (plant, K·reference) -> (plant, reference): mean over the noise realisations
+        return x.reshape(x.shape[0], K, len(refs)).mean(axis=1)
     ew = float(opts["effort_weight"])
     Pj = jnp.asarray(Pall)
     zj = jnp.asarray(z)
@@ -464,14 +472,14 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
         return mw * jnp.sum(jnp.maximum(ms - ms_max, 0.0) ** 2), ms
 
     def parts(g):
-        track, tune_c = batch_cost(g, plants, R, effort_weight=ew, **kw)
+        track, tune_c = batch_cost(g, plants, R_cost, effort_weight=ew, **kw)
         mt, ms = margin_term(g)
-        return track, tune_c, mt, ms
+        return per_reference(track), per_reference(tune_c), mt, ms
 
     parts_jit = jax.jit(parts)
 
     def cost_fn(g):
-        _, tune_c = batch_cost(g, plants, R, effort_weight=ew, **kw)
+        _, tune_c = batch_cost(g, plants, R_cost, effort_weight=ew, **kw)
         return jnp.mean(tune_c) + margin_term(g)[0]
 
     def total(g):
@@ -626,6 +634,7 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
             "optimiser": "start search (baselines, model-based PI scaled on a kp x ki grid), then optimistix.BFGS from the "
                          "best `starts` candidates (reverse-mode gradients through the closed loop and the frequency response)",
             "plants": int(opts["plants"]),
+            "noise_realisations": K,
             "noise_sigma": {"torque": sigma[0], "motor_velocity": sigma[1]},
             "substeps": int(opts["substeps"]),
             "smoothing": {"velocity_scale": sm.velocity_scale, "torsion_rate_scale": sm.torsion_rate_scale},
