@@ -174,14 +174,15 @@ def test_user_data_is_validated_on_the_identified_model_and_says_so(tmp_path, mo
 def test_plant_sets_carry_the_friction_uncertainty():
     """Plant set 0 is the identified plant; the others have every eq. 9 friction term scaled by one
     common factor spread evenly over 1 ± u, and the rest of the parameters untouched."""
-    from hdjax._tune import FRICTION_NAMES, draw_parameter_sets
+    from hdjax._model import EQ9_COEFFICIENTS
+    from hdjax._tune import draw_parameter_sets
 
     p, _ = hd1()
     sets = draw_parameter_sets(p, {}, 6, seed=0, friction_uncertainty=0.2)
     ratio = np.asarray(sets.Tsp) / float(p.Tsp)
     assert ratio[0] == 1.0
     np.testing.assert_allclose(np.sort(ratio[1:]), [0.8, 0.9, 1.0, 1.1, 1.2])
-    for k in FRICTION_NAMES:
+    for k in EQ9_COEFFICIENTS:
         np.testing.assert_allclose(np.asarray(getattr(sets, k)), float(getattr(p, k)) * ratio)
     np.testing.assert_allclose(np.asarray(sets.K1), float(p.K1))
     none = draw_parameter_sets(p, {}, 6, seed=0)

@@ -672,10 +672,10 @@ def numpy_torque_law(gains: list[TorqueGains], controller: TorqueController, fre
         e = r - y
         st["d"] = a * st["d"] + (1.0 - a) * (1.0 - st["first"]) * (y - st["y"]) / ts
         Tf = np.asarray(friction_torque(controller.friction, jnp.asarray(w), ff_sm))
-        w_ref, th = reference_motor_velocity(jnp.asarray(r, float), jnp.asarray(st["torsion"]), 0.0, controller.friction, N=N, ts=ts)
-        w_ref = np.asarray(w_ref) + N * st["v"]
+        w_ref, th = reference_motor_velocity(jnp.asarray(r, float), jnp.asarray(st["torsion"]), jnp.asarray(st["v"]),
+                                             controller.friction, N=N, ts=ts)
         st["torsion"] = np.array(th)
-        Tfr = np.asarray(friction_torque(controller.friction, jnp.asarray(w_ref), ff_sm))
+        Tfr = np.asarray(friction_torque(controller.friction, w_ref, ff_sm))
         ff = g["kr"] * r / (N * Km) + g["kj"] * inertia_ff * r / Km + g["kf"] * Tf / Km + g["kfr"] * Tfr / Km
         u = ff + kp * e + st["I"] - g["kd"] * st["d"]
         lim, s = controller.current_limit, controller.saturation_scale

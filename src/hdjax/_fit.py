@@ -136,7 +136,8 @@ def process_noise(simulate, batch: Experiment, r_ref: np.ndarray, *, realisation
     the recorded current). `simulate(batch)` returns the residuals; `r_ref` is its value on `batch`."""
     m = np.asarray(batch.mask)
     cur = np.asarray(batch.current)
-    level = float(np.median([white_noise_level(cur[e][m[e]]) for e in range(cur.shape[0])]))
+    # records too short for a noise estimate (under 11 samples) do not vote
+    level = float(np.median([white_noise_level(cur[e][m[e]]) for e in range(cur.shape[0]) if m[e].sum() > 10] or [0.0]))
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(realisations):

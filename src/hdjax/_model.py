@@ -15,6 +15,7 @@ from ._smooth import smooth_sign, smooth_signed_power, smooth_step
 
 
 PARAMETER_NAMES = ("alpha", "K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")
+EQ9_COEFFICIENTS = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")  # the torques eq. 9 is linear in (`friction_basis` columns)
 PARAMETER_UNITS = {
     "alpha": "-",
     "K1": "N·m/rad",
@@ -113,7 +114,7 @@ def friction_basis(
 
 def friction_torque(p: Parameters, velocity: ArrayLike, smoothing: Smoothing = Smoothing()) -> Float[Array, "..."]:
     """Eq. 9: friction torque (N·m) at wave-generator velocity (rad/s)."""
-    coeffs = jnp.stack([p.Tvp, p.Tvn, p.Tsp, p.Tsn, p.Tssp1, p.Tssn1])
+    coeffs = jnp.stack([getattr(p, k) for k in EQ9_COEFFICIENTS])
     return friction_basis(velocity, p.Tss2, smoothing) @ coeffs
 
 

@@ -78,7 +78,7 @@ from ._control import (
 from ._data import Dataset
 from ._effects import PERIODIC, SCALAR_FIELDS, Effects
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
-from ._model import PARAMETER_NAMES, Parameters, Smoothing
+from ._model import EQ9_COEFFICIENTS, PARAMETER_NAMES, Parameters, Smoothing
 from ._progress import task
 
 DEFAULTS = {
@@ -221,9 +221,6 @@ def _identified(dataset: Dataset, config: dict, opts: dict, out: pathlib.Path, l
     return Parameters.from_dict(params), effects, per, (float(nl["torque"]), float(nl["motor_velocity"])), source
 
 
-FRICTION_NAMES = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")
-
-
 def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, seed: int = 0,
                         friction_uncertainty: float = 0.0) -> Parameters:
     """`n` plant parameter sets (stacked leaves, leading axis `plant`), the first the nominal one.
@@ -233,7 +230,7 @@ def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, se
     estimate. Parameters with fewer than two estimates stay nominal.
 
     `friction_uncertainty` $u$ (-): plant $j \\ge 1$ also has all its eq. 9 friction terms
-    (`FRICTION_NAMES`) multiplied by a common factor $1 + u\\,z_j$, the $z_j$ spread evenly over
+    (`hdjax._model.EQ9_COEFFICIENTS`) multiplied by a common factor $1 + u\\,z_j$, the $z_j$ spread evenly over
     $[-1, 1]$ (so the set holds the friction $u$ above and below the identified one). The
     controller's friction feed-forward keeps the identified values: a controller that leans on
     it is charged for friction that drifts with temperature and wear, or that the fit got wrong."""
@@ -255,7 +252,7 @@ def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, se
     if friction_uncertainty > 0 and n > 1:
         z = np.linspace(-1.0, 1.0, n - 1) if n > 2 else np.ones(1)
         z = rng.permutation(z)
-        for k in FRICTION_NAMES:
+        for k in EQ9_COEFFICIENTS:
             out[k][1:] *= 1.0 + friction_uncertainty * z
     return Parameters(**{k: jnp.asarray(v) for k, v in out.items()})
 
