@@ -17,7 +17,6 @@ is part of the same graph, so its derivative is included.
 import casadi as ca
 import numpy as np
 
-
 VEL_SCALE, RATE_SCALE = 1e-3, 1e-5  # as fit_vs_scipy (hdjax.Smoothing())
 MODEL = ("K1", "Tst", "alpha", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")
 

@@ -92,7 +92,6 @@ import time
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
@@ -107,7 +106,6 @@ from hdjax._data import load_dataset  # noqa: E402
 from hdjax._experiment import Experiment  # noqa: E402
 from hdjax._fit import DEFAULT_FREE, POSITIVE, experiment_residuals, fit_parameters, noise_levels  # noqa: E402
 from hdjax._paper_id import identify_paper  # noqa: E402
-
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # CVODES options of the CasADi column besides the tolerances (see the module docstring)

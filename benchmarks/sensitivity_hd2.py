@@ -15,7 +15,6 @@ import sys
 import tempfile
 import time
 
-
 root = pathlib.Path(__file__).resolve().parents[1]
 config = sys.argv[1] if len(sys.argv) > 1 else str(root / "configs" / "hd2.yaml")
 extra = sys.argv[2:]

@@ -21,7 +21,6 @@ import time
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 import diffrax as dfx  # noqa: E402
@@ -29,7 +28,6 @@ import equinox as eqx  # noqa: E402
 import numpy as np  # noqa: E402
 
 import hdjax  # noqa: E402
-
 
 DEG = 180.0 / np.pi
 # Table I, HD2, K1 and Tst read per degree (SPEC §1)

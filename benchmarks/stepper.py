@@ -24,7 +24,6 @@ import time
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
@@ -34,7 +33,6 @@ import numpy as np  # noqa: E402
 import hdjax  # noqa: E402
 from hdjax._bench import make_dataset  # noqa: E402
 from hdjax._data import load_dataset  # noqa: E402
-
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 FREE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")

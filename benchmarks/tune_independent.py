@@ -35,9 +35,9 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from hdjax._bench import make_dataset  # noqa: E402
+from hdjax._control import TorqueController, TorqueGains  # noqa: E402
 from hdjax._data import load_dataset  # noqa: E402
 from hdjax._identify import run_fit  # noqa: E402
-from hdjax._control import TorqueController, TorqueGains  # noqa: E402
 from hdjax._tune import _bench_from_truth, _identified, _options, _references, _validate_bench, run_tune  # noqa: E402
 
 

@@ -14,7 +14,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
 jax.config.update("jax_enable_x64", True)
 
 from hdjax._control import Plant, TorqueController, TorqueGains, closed_loop, doublet_reference, step_reference

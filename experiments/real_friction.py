@@ -20,7 +20,6 @@ import time
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 from hdjax._data import load_dataset  # noqa: E402

@@ -22,12 +22,10 @@ import time
 import jax
 import numpy as np
 
-
 jax.config.update("jax_enable_x64", True)
 
 import hdjax  # noqa: E402
 from hdjax import _rig  # noqa: E402
-
 
 SEEDS = {"hd1": 1001, "hd2": 2002}
 RIPPLE = {"order": 2, "amplitude": 1.5, "phase": 0.7}  # N·m, rad: HD2 strain-gauge ripple

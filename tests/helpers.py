@@ -4,7 +4,6 @@ import numpy as np
 
 import hdjax
 
-
 DEG = 180.0 / np.pi
 
 

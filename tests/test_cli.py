@@ -175,3 +175,21 @@ def test_fit_cutoff_reaches_the_paper_identification_of_every_command(command, m
     with pytest.raises(Stop):
         run(ds, config, tmp_path / "out", log=lambda *a: None)
     assert seen == {"alpha": 0.6, "Tss2": 0.2, "cutoff_hz": 30.0}
+
+
+def test_fit_trajectory_solver_option_builds_the_named_simulator():
+    """`fit.trajectory.solver` picks the trajectory fit's numerics: the adaptive Rodas3 default or
+    the fixed-step implicit velocity-level stepper with `substeps`; a bad value names its key."""
+    import hdjax
+    from hdjax._identify import DEFAULTS, trajectory_simulator
+
+    opts = dict(DEFAULTS["trajectory"])
+    assert opts["solver"] == "rodas3"
+    sim = trajectory_simulator(opts)
+    assert sim.rtol == opts["rtol"] and not isinstance(sim.solver, hdjax.VelocityImplicit)
+    sim = trajectory_simulator({**opts, "solver": "velocity_implicit", "substeps": 2})
+    assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.substeps == 2
+    with pytest.raises(ValueError, match=r"fit\.trajectory\.solver.*velocity_implicit"):
+        trajectory_simulator({**opts, "solver": "euler"})
+    with pytest.raises(ValueError, match=r"fit\.trajectory\.substeps"):
+        trajectory_simulator({**opts, "solver": "velocity_implicit", "substeps": 0})

@@ -22,9 +22,7 @@ from hdjax._control import (
 )
 from hdjax._model import Smoothing
 from hdjax._tune import _options
-
 from helpers import hd1
-
 
 SM = Smoothing(velocity_scale=0.03, torsion_rate_scale=1e-3)
 

@@ -2,7 +2,6 @@
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 import re
@@ -22,7 +21,6 @@ from hdjax._data import (
     resolve_target,
     write_dataset,
 )
-
 
 DRIVE = Drive(gear_ratio=160.0, torque_constant=0.1815, load_inertia=0.5)
 

@@ -14,7 +14,6 @@ from hdjax._diagnose import diagnose
 from hdjax._paper_id import identify_paper
 from hdjax._rig import campaign, run_campaign, station_hd1
 
-
 N_LOCKED, N_FREE, DURATION = 4, 4, 1.0
 
 

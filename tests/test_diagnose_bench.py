@@ -24,7 +24,6 @@ from hdjax._data import load_dataset
 from hdjax._diagnose import diagnose
 from hdjax._paper_id import identify_paper
 
-
 jax.config.update("jax_enable_x64", True)
 
 N_LOCKED, N_FREE, DURATION, SNR = 4, 4, 1.5, 4.0

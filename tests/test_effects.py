@@ -2,9 +2,9 @@
 
 import jax
 import numpy as np
-from helpers import hd2, sine_experiment
 
 import hdjax
+from helpers import hd2, sine_experiment
 
 
 def test_with_periodic_and_with_values_switch_effects_on():

@@ -3,15 +3,14 @@ best fit of its own parameter set, so it fits the loop at least as well as the Î
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np
 import pytest
-from test_paper_id import DRIVE, TRUE, constrained
 
 from hdjax._identify import hysteresis_curves
 from hdjax._paper_id import identify_paper
+from test_paper_id import DRIVE, TRUE, constrained
 
 
 @pytest.mark.parametrize("alpha_true", [0.5, 0.7])

@@ -3,19 +3,18 @@ workflow writes the SPEC §3 keys."""
 
 import json
 
-import numpy as np
-import optimistix as optx
 import jax
 import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
 import pytest
-from helpers import hd2
 
 import hdjax
 from hdjax._data import load_dataset, write_dataset
 from hdjax._fit import CostStop, _final_residual_and_jacobian, _stalled, fit_parameters, fit_per_experiment
 from hdjax._identify import run_fit
 from hdjax._paper_id import identify_paper
-
+from helpers import hd2
 
 RUNS = [
     ("constrained", 2.0, 5.0, 0.0),

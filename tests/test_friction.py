@@ -12,7 +12,6 @@ from hdjax._friction import FRICTION_NAMES, FrictionParameters, FrictionStructur
 from hdjax._friction_diag import diagnose_friction
 from hdjax._friction_fit import FrictionProblem, rms_stats
 
-
 jax.config.update("jax_enable_x64", True)
 
 TRUTH = dict(Tvp=0.8, Tvn=0.9, Tsp=0.5, Tsn=0.45, Tssp1=0.3, Tssn1=0.25, Tss2=0.05)
@@ -164,9 +163,8 @@ def test_bad_input_messages():
 
 def test_commands_on_friction_dataset(tmp_path):
     """`fit` and `diagnose` dispatch a friction-only dataset and write the SPEC §3 keys."""
-    from hdjax._data import write_dataset
+    from hdjax._data import load_dataset, write_dataset
     from hdjax._friction_cli import run_diagnose, run_fit
-    from hdjax._data import load_dataset
 
     exps = make_records(seed=6)
     write_dataset(tmp_path / "ds", name="synthetic-friction", drive=None, experiments=exps,

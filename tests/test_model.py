@@ -6,11 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import hd1, hd2, sine_experiment
 
 import hdjax
 from hdjax._smooth import smooth_sign, smooth_signed_power, smooth_step
-
+from helpers import hd1, hd2, sine_experiment
 
 DEFAULT = hdjax.Smoothing()
 FRICTION_NAMES = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")

@@ -5,12 +5,11 @@ there (they are fitted from zero)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
-from helpers import hd1, sine_experiment
 from scipy.signal import lfilter
 
 import hdjax
 from hdjax._plant import _first_order_lag
-
+from helpers import hd1, sine_experiment
 
 SIM = hdjax.Simulator(fixed_step=2.5e-4)  # fixed steps: the discrete solution is smooth in the parameters
 

@@ -4,11 +4,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import hd1, hd2, sine_experiment
 from scipy.integrate import solve_ivp
 
 import hdjax
 import hdjax._sharding
+from helpers import hd1, hd2, sine_experiment
 
 
 def _reference(p, drive, exp, smoothing=hdjax.Smoothing()):

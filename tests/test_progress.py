@@ -3,18 +3,17 @@ only when a command listens, and the diagnosis bars driven by `diagnose`'s log l
 
 import jax
 
-
 jax.config.update("jax_enable_x64", True)
 
 import io
 
 import numpy as np
-from helpers import hd2, sine_experiment
 from rich.console import Console
 
 import hdjax
 from hdjax._diagnose_report import DEFAULTS, DiagnosisProgress
 from hdjax._progress import RunLog, current, task
+from helpers import hd2, sine_experiment
 
 
 def _terminal():

@@ -9,7 +9,6 @@ import hdjax
 from hdjax import _rig
 from hdjax._data import load_dataset
 
-
 DATA = pathlib.Path(__file__).resolve().parents[1] / "data"
 TINY = {"n_constrained": 2, "n_free": 2, "duration": 0.3}
 

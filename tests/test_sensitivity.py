@@ -6,7 +6,6 @@ import json
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import hd2, sine_experiment
 
 import hdjax
 from hdjax._data import load_dataset, write_dataset
@@ -18,6 +17,7 @@ from hdjax._sensitivity import (
     sensitivities,
     workflow_simulator,
 )
+from helpers import hd2, sine_experiment
 
 
 def test_ad_sensitivities_match_central_differences():

@@ -14,7 +14,6 @@ import sys
 import numpy as np
 import pytest
 
-
 SCRIPT = r"""
 import json, sys
 import jax

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 import hdjax
-from hdjax._solver import ALPHA, B, B_HAT, GAMMA, GAMMAS
-
+from hdjax._solver import ALPHA, B_HAT, GAMMA, GAMMAS, B
 
 # ------------------------------------------------------------------------------------------------
 # Coefficients (Hairer & Wanner, Solving ODEs II, §IV.7, order conditions for Rosenbrock methods)

@@ -9,10 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import hd2, sine_experiment
 
 import hdjax
-
+from helpers import hd2, sine_experiment
 
 jax.config.update("jax_enable_x64", True)
 

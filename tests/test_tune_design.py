@@ -9,8 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hdjax import _bench
-from hdjax import _loopshape as ls
+from hdjax import _bench, _loopshape as ls
 from hdjax._control import TorqueGains, sine_reference, step_reference
 from helpers import hd1
 

@@ -6,12 +6,32 @@ Float64 is not switched on here: commands, tests and scripts call
 
 import importlib.metadata
 
+from ._control import (
+    Plant as Plant,
+    Reference as Reference,
+    TorqueController as TorqueController,
+    TorqueGains as TorqueGains,
+    closed_loop as closed_loop,
+    sine_reference as sine_reference,
+    step_reference as step_reference,
+    tracking_cost as tracking_cost,
+)
+from ._diagnose import Diagnosis as Diagnosis, covariate_drifts as covariate_drifts, diagnose as diagnose_effects  # noqa: F401 (public alias)
+from ._effects import EFFECT_NAMES as EFFECT_NAMES, Effects as Effects
 from ._experiment import (
     Experiment as Experiment,
     make_experiment as make_experiment,
     stack_experiments as stack_experiments,
     unstack_experiments as unstack_experiments,
 )
+from ._fit import fit_parameters as fit_parameters
+from ._friction import (
+    FrictionParameters as FrictionParameters,
+    FrictionStructure as FrictionStructure,
+    friction_model_torque as friction_model_torque,
+)
+from ._friction_diag import diagnose_friction as diagnose_friction
+from ._friction_fit import FrictionProblem as FrictionProblem
 from ._model import (
     PARAMETER_NAMES as PARAMETER_NAMES,
     PARAMETER_UNITS as PARAMETER_UNITS,
@@ -23,7 +43,7 @@ from ._model import (
     friction_torque as friction_torque,
     motor_acceleration as motor_acceleration,
 )
-from ._effects import EFFECT_NAMES as EFFECT_NAMES, Effects as Effects
+from ._paper_id import identify_paper as identify_paper
 from ._plant import (
     Simulator as Simulator,
     Trajectory as Trajectory,
@@ -33,26 +53,5 @@ from ._plant import (
 )
 from ._solver import Rodas3 as Rodas3
 from ._stepper import VelocityImplicit as VelocityImplicit
-from ._fit import fit_parameters as fit_parameters
-from ._paper_id import identify_paper as identify_paper
-from ._diagnose import Diagnosis as Diagnosis, covariate_drifts as covariate_drifts, diagnose as diagnose_effects
-from ._friction import (
-    FrictionParameters as FrictionParameters,
-    FrictionStructure as FrictionStructure,
-    friction_model_torque as friction_model_torque,
-)
-from ._friction_fit import FrictionProblem as FrictionProblem
-from ._friction_diag import diagnose_friction as diagnose_friction
-from ._control import (
-    Plant as Plant,
-    Reference as Reference,
-    TorqueController as TorqueController,
-    TorqueGains as TorqueGains,
-    closed_loop as closed_loop,
-    sine_reference as sine_reference,
-    step_reference as step_reference,
-    tracking_cost as tracking_cost,
-)
-
 
 __version__ = importlib.metadata.version("hdjax")

@@ -13,7 +13,6 @@ import pathlib
 import sys
 import textwrap
 
-
 COMMANDS = {
     "fit": (
         "identify the paper's model: regressions, joint trajectory-error fit, per-experiment fits",

@@ -21,7 +21,6 @@ work, whichever command reads it.
 import difflib
 from collections.abc import Iterable, Mapping
 
-
 TOP_LEVEL_KEYS = ("dataset", "fit", "diagnose", "sensitivity", "tune")
 """The keys a config YAML may hold at its top level."""
 

@@ -43,7 +43,6 @@ from jaxtyping import Array, Bool, Float
 from ._experiment import MODES, Experiment, make_experiment
 from ._model import Drive
 
-
 __all__ = [
     "COLUMNS",
     "DatasetError",

@@ -69,8 +69,7 @@ from scipy.signal import lfilter
 
 from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PERIODIC, SCALAR, Effects
 from ._experiment import Experiment, stack_experiments
-from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map, white_noise_level
-from ._fit import process_noise as _process_noise
+from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map, process_noise as _process_noise, white_noise_level
 from ._model import Drive, Parameters
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._sharding import for_each_experiment
@@ -367,7 +366,8 @@ def diagnose(
     }
     cols = _all_columns(ctx)
     prob = _Problem(pmap=pmap, cols=tuple(dataclasses.replace(c, scale=1.0, start=0.0) for c in cols),
-                    scales=jnp.asarray([c.scale for c in cols]), starts=jnp.asarray([c.start for c in cols]), effects=_fixed_effect_settings(ctx, list(candidates) + model_form), drive=drive,
+                    scales=jnp.asarray([c.scale for c in cols]), starts=jnp.asarray([c.start for c in cols]),
+                    effects=_fixed_effect_settings(ctx, list(candidates) + model_form), drive=drive,
                     simulator=simulator)
     # Jacobians only set Gauss–Newton directions (every accepted step and held-out figure is a
     # simulation at `simulator`'s tolerance), so they are computed at a looser tolerance
@@ -628,7 +628,8 @@ def diagnose(
                        + f", harm ratio {s['harm_ratio']:.2f})" if s["simulated"] else "")
                     + (" significant" if s["significant"] else ""))
                 if s["simulated"]:
-                    log("    per held-out experiment: " + " ".join(f"{100 * g:+.0f}" for g in s["per_experiment_gain"]) + " % of whitened SSE " + " ".join(f"{v:.0f}" for v in e_before))
+                    log("    per held-out experiment: " + " ".join(f"{100 * g:+.0f}" for g in s["per_experiment_gain"])
+                        + " % of whitened SSE " + " ".join(f"{v:.0f}" for v in e_before))
             rounds.append(scores)
             sig = [c for c in scores if scores[c]["significant"]]
             if not sig:

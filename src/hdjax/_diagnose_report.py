@@ -7,7 +7,6 @@ import time
 
 import matplotlib
 
-
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
@@ -21,7 +20,6 @@ from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._paper_id import identify_paper
 from ._plant import Simulator
 from ._progress import task
-
 
 DEFAULTS = {
     "candidates": list(EFFECT_NAMES),  # SPEC §4 effects screened, one finding per round

@@ -37,7 +37,6 @@ from jaxtyping import Array, Float
 
 from ._smooth import smooth_sign
 
-
 MAX_ORDER = 8
 PERIODIC = ("kinematic_error", "torque_sensor_ripple", "cogging", "position_dependent_friction")
 SCALAR = {

@@ -5,7 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-
 MODES = ("constrained", "free", "friction")
 CONSTRAINED, FREE, FRICTION = 0, 1, 2
 

@@ -26,8 +26,8 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import lineax as lx
+import numpy as np
 import optimistix as optx
 
 from ._effects import Effects
@@ -37,7 +37,6 @@ from ._paper_id import _consistency
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._progress import count_progress, lm_progress
 from ._sharding import experiment_mesh, for_each_experiment, map_experiments, replicated, shard_experiments
-
 
 CHANNELS = ("torque", "motor_velocity", "output_position")
 POSITIVE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tss2")

@@ -41,7 +41,6 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from ._model import PARAMETER_UNITS, Smoothing, _as_float
 from ._smooth import smooth_sign, smooth_step
 
-
 FRICTION_NAMES = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")
 FRICTION_UNITS = {k: PARAMETER_UNITS[k] for k in FRICTION_NAMES}
 EXTENSION_NAMES = ("position_dependent_friction", "position_dependent_torque", "presliding_friction", "thermal_drift")

@@ -10,7 +10,7 @@ import numpy as np
 
 from ._data import Dataset
 from ._friction import FRICTION_NAMES, FRICTION_UNITS, MAX_ORDERS, amplitude_phase
-from ._friction_diag import diagnose_friction, _add, _Fold
+from ._friction_diag import _add, _Fold, diagnose_friction
 from ._friction_fit import (
     I_BETA,
     I_LDELTA,
@@ -29,7 +29,6 @@ from ._friction_fit import (
 )
 from ._friction_lowspeed import fit_low_speed, low_speed_reason
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
-
 
 TRAIN_FRACTION = 0.7
 _TIED = {TIE_NEG_TO_POS: ("Tvn", "Tsn", "Tssn1"), TIE_POS_TO_NEG: ("Tvp", "Tsp", "Tssp1")}
@@ -449,8 +448,9 @@ def _span_note(fold, effect, span) -> str:
 
 
 def problem_params_of(problem, fold):
-    from ._friction_fit import vector_to_params
     import jax.numpy as jnp
+
+    from ._friction_fit import vector_to_params
 
     return vector_to_params(jnp.asarray(fold.x), problem.scale, fold.tie)
 

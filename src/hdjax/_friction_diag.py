@@ -35,12 +35,11 @@ from ._friction_fit import (
     I_TC,
     I_TS,
     FrictionProblem,
-    Rows,
     RowFit,
+    Rows,
     rms_stats,
     vector_to_params,
 )
-
 
 MAX_FOLDS = 5
 N_BLOCKS = 5

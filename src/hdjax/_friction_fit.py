@@ -42,7 +42,6 @@ from ._friction import (
 )
 from ._model import Smoothing
 
-
 M = MAX_ORDERS
 I_TVP, I_TVN, I_TSP, I_TSN, I_TSSP1, I_TSSN1, I_LTSS2 = range(7)
 I_RS = slice(7, 7 + M)

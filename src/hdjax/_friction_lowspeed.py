@@ -34,7 +34,6 @@ import scipy.optimize
 
 from ._friction_fit import FrictionProblem, rms_stats
 
-
 LOW_SPEED_LIMIT = 0.01  # rad/s: records whose 98th percentile |ω| is below this use the low-speed law
 LOW_SPEED_MODELS = ("regularised_coulomb", "dahl_presliding")
 GRID = 33

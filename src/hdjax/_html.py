@@ -12,7 +12,6 @@ import pathlib
 
 from ._io import atomic_write_text
 
-
 _CSS = """
 :root { color-scheme: light; }
 body { font: 15px/1.55 -apple-system, "Segoe UI", Roboto, "Helvetica Neue", Arial, sans-serif;

@@ -9,7 +9,6 @@ import equinox as eqx
 import jax.numpy as jnp
 import matplotlib
 
-
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
@@ -17,12 +16,12 @@ import numpy as np
 from ._config import section_options
 from ._data import Dataset
 from ._experiment import stack_experiments
-from ._fit import DEFAULT_FREE, fit_per_experiment, fit_parameters, nrmse
+from ._fit import DEFAULT_FREE, fit_parameters, fit_per_experiment, nrmse
 from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Parameters
 from ._paper_id import identify_paper
 from ._plant import Simulator, simulate_batch
-
+from ._stepper import VelocityImplicit
 
 FRICTION_NAMES = ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn")
 DEFAULTS = {
@@ -39,13 +38,35 @@ DEFAULTS = {
         "step_se_tol": 0.1,
         "per_experiment": True,
         "per_experiment_max_steps": 12,
+        "solver": "rodas3",
+        "substeps": 4,
     },
 }
 
 
+SOLVERS = ("rodas3", "velocity_implicit")
+
+
+def trajectory_simulator(trajectory: dict) -> Simulator:
+    """The simulator of the trajectory fit from the `fit.trajectory` options: `solver` "rodas3"
+    (adaptive Rosenbrock on the smoothed model, tolerance `rtol`) or "velocity_implicit" (fixed-step
+    TR-BDF2 with exact sticking, `substeps` steps per sample; see `hdjax.VelocityImplicit`)."""
+    name = trajectory["solver"]
+    if name == "rodas3":
+        return Simulator(rtol=float(trajectory["rtol"]), atol=float(trajectory["rtol"]) * 1e-2)
+    if name == "velocity_implicit":
+        substeps = trajectory["substeps"]
+        if not isinstance(substeps, int) or isinstance(substeps, bool) or substeps < 1:
+            raise ValueError(f"config `fit.trajectory.substeps` must be a whole number ≥ 1, got {substeps!r}.")
+        return Simulator(solver=VelocityImplicit(substeps=substeps))
+    raise ValueError(f"config `fit.trajectory.solver` must be one of {list(SOLVERS)}, got {name!r}.")
+
+
 def _options(config: dict) -> dict:
     """The `fit:` section of `config` completed by `DEFAULTS`; an unknown key is an error."""
-    return section_options(config, "fit", DEFAULTS, nested=("trajectory",))
+    opts = section_options(config, "fit", DEFAULTS, nested=("trajectory",))
+    trajectory_simulator(opts["trajectory"])  # a bad solver or substeps is refused before any work
+    return opts
 
 
 def _select(dataset: Dataset, idx: list[int], max_n: int) -> list[int]:
@@ -117,7 +138,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
             f"for the NRMSE figures."
         )
     batch = stack_experiments([exps[j] for j in sel_pos])
-    sim_fit = Simulator(rtol=float(opts["trajectory"]["rtol"]), atol=float(opts["trajectory"]["rtol"]) * 1e-2)
+    sim_fit = trajectory_simulator(opts["trajectory"])
     t0 = time.time()
     cost_rtol = float(opts["trajectory"]["cost_rtol"])
     step_se_tol = float(opts["trajectory"]["step_se_tol"])

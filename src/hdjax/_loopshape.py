@@ -124,7 +124,8 @@ def margins(kp, ki, kd, z, P, *, ts: float, derivative_filter: float) -> dict:
 
 def closed_loop_radius(kp, ki, kd, plant_d, *, ts: float, derivative_filter: float):
     """Spectral radius of the sampled closed loop (plant, integrator, derivative filter, previous
-    output), the cancelled integrator/zero pair at z = 1 of a free plant left out; < 1 is stable. `kp`, `ki`, `kd` may be arrays (broadcast); numpy."""
+    output), the cancelled integrator/zero pair at z = 1 of a free plant left out; < 1 is stable. `kp`, `ki`, `kd` may be arrays
+    (broadcast); numpy."""
     Ad, Bd, C = plant_d
     n = Ad.shape[0]
     a = math.exp(-ts / derivative_filter)
@@ -198,7 +199,8 @@ def model_pi(responses, plants_d, *, static_gain: float, ts: float, derivative_f
 def feedforward_current(torque, *, free: bool, p: Parameters, drive, ts: float) -> np.ndarray:
     """Current (A) the identified model needs to follow the output-torque trajectory `torque`
     (N·m, samples at `ts`) exactly: locked, $r/(NK_m) + T_f(\\omega_m)/K_m$ with the motor
-    velocity $\\omega_m = N\\dot r/K_1$ of the spring, plus the motor inertia $J_{eff}\\dot\\omega_m$; free, $[(1/N + NJ_{eff}/J_L)r + T_f(\\omega_m)]/K_m$
+    velocity $\\omega_m = N\\dot r/K_1$ of the spring, plus the motor inertia $J_{eff}\\dot\\omega_m$;
+    free, $[(1/N + NJ_{eff}/J_L)r + T_f(\\omega_m)]/K_m$
     with $\\omega_m = N\\int r\\,dt/J_L$ (rigid body)."""
     r = np.asarray(torque, float)
     N, Km, JL = float(drive.gear_ratio), float(drive.torque_constant), float(drive.load_inertia)

@@ -13,7 +13,6 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._smooth import smooth_sign, smooth_signed_power, smooth_step
 
-
 PARAMETER_NAMES = ("alpha", "K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")
 EQ9_COEFFICIENTS = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")  # the torques eq. 9 is linear in (`friction_basis` columns)
 PARAMETER_UNITS = {

@@ -61,7 +61,6 @@ from ._experiment import Experiment, stack_experiments
 from ._model import PARAMETER_NAMES, Drive, Parameters, Smoothing, friction_basis
 from ._smooth import smooth_signed_power
 
-
 __all__ = ["PAPER_HD2_SI", "PaperIdentification", "identify_paper"]
 
 #: Fallback values used by `PaperIdentification.parameters()` for undetermined parameters: the

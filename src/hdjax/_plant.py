@@ -26,10 +26,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._experiment import Experiment
-from ._solver import Rodas3
-from ._stepper import VelocityImplicit, implicit_trajectory
 from ._effects import Effects, dahl_rate, stiffness_torque
+from ._experiment import Experiment
 from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_basis
 from ._sharding import (
     experiment_batching,
@@ -40,6 +38,8 @@ from ._sharding import (
     shard_experiments,
 )
 from ._smooth import smooth_signed_power
+from ._solver import Rodas3
+from ._stepper import VelocityImplicit, implicit_trajectory
 
 
 class Trajectory(eqx.Module):

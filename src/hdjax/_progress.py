@@ -18,7 +18,6 @@ import sys
 import threading
 import time
 
-
 _CURRENT: contextvars.ContextVar = contextvars.ContextVar("hdjax_runlog", default=None)
 
 

@@ -45,7 +45,6 @@ from ._experiment import Experiment, make_experiment, stack_experiments
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
 from ._plant import Simulator, simulate_batch
 
-
 __all__ = [
     "CurrentProfile",
     "EFFECT_UNITS",
@@ -225,7 +224,7 @@ class CurrentProfile:
     def __iter__(self):
         return iter((self.name, self.mode, self.current))
 
-    def scaled(self, factor: float) -> "CurrentProfile":
+    def scaled(self, factor: float) -> CurrentProfile:
         """A copy with the current (and the amplitude and offset in `info`) multiplied by `factor`."""
         info = dict(self.info)
         for key in ("amplitude", "offset"):

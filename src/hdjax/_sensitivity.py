@@ -31,7 +31,6 @@ import jax.numpy as jnp
 import matplotlib
 import numpy as np
 
-
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.colors import LogNorm
@@ -44,7 +43,6 @@ from ._io import atomic_savefig, atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
 from ._plant import Simulator, Trajectory, is_fixed_cost, simulate
 from ._sharding import for_each_experiment
-
 
 __all__ = [
     "ABLATIONS",
@@ -1041,7 +1039,8 @@ def _report(r: dict) -> str:
           f"({idf['observations']} observations): " + (
               "the model explains the data to the noise level." if idf["chi2_reduced"] < 1.5 else
               "above 1, so the residual holds more than noise (model error), which the noise-only SE leave out."), ""]
-    L += ["| parameter | value | relative SE (9 estimated) | relative SE (all 11 free) | noise-predicted per-experiment spread | consistency | agree? |",
+    L += ["| parameter | value | relative SE (9 estimated) | relative SE (all 11 free) "
+          "| noise-predicted per-experiment spread | consistency | agree? |",
           "|---|---|---|---|---|---|---|"]
     comp = {c["parameter"]: c for c in idf["comparison"]}
     for k, e in r["standard_errors"].items():
@@ -1095,7 +1094,8 @@ def _report(r: dict) -> str:
         L.append(f"- s = {d['singular_value']:.3g} (relative SE along it {_pct(d['std_error_along'])}): {d['combination']}")
     ab = r["ablation"]
     L += ["", "## 3. The paper's section V study", "", ab.get("definition", ""), "",
-          "| change | mode | experiments | RMS torque (N·m) complete → changed | increase | RMS velocity (rad/s) complete → changed | increase | failed |",
+          "| change | mode | experiments | RMS torque (N·m) complete → changed | increase "
+          "| RMS velocity (rad/s) complete → changed | increase | failed |",
           "|---|---|---|---|---|---|---|---|"]
     for c in ab.get("changes", []):
         for mode, e in c["per_mode"].items():

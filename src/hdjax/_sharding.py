@@ -43,7 +43,6 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._experiment import Experiment
 
-
 AXIS = "exp"
 
 

@@ -29,7 +29,6 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-
 GAMMA = 0.5
 ALPHA = ((), (0.0,), (1.0, 0.0), (0.75, -0.25, 0.5))
 GAMMAS = ((), (1.0,), (-0.25, -0.25), (1.0 / 12.0, 1.0 / 12.0, -2.0 / 3.0))

@@ -196,9 +196,8 @@ def _identified(dataset: Dataset, config: dict, opts: dict, out: pathlib.Path, l
             source += f" with the extended model {ext} (effects: {sorted(effects.active) or 'none'})"
         log(f"      identified plant from {source}")
     else:
-        from ._paper_id import identify_paper
-
         from ._identify import _options as fit_options
+        from ._paper_id import identify_paper
 
         fo = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
         log("      no fit.json found: running the paper's identification (hdjax._paper_id) on the records")
@@ -556,7 +555,8 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
                  "the figures show the first") if runs > 1 else ""
     timing["validation"] = time.time() - t0
     sim = jax.jit(
-        lambda g: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b), substeps=int(opts["substeps"]), smoothing=sm))(
+        lambda g: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b),
+                                                       substeps=int(opts["substeps"]), smoothing=sm))(
             R, noise[0], noise[1]
         )
     )(tuned)
@@ -609,7 +609,10 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
         "dataset": dataset.name,
         "identification": {"source": source, "parameters": nominal.to_dict(), "effects": sorted(effects.active)},
         "controller": {
-            "law": "i = sat(kr*r/(N*Km) + kj*N*Jeff_hat*r/(J_L*Km) + kp*e + I - kd*dy_f + kf*Tf_hat(w)/Km + kfr*Tf_hat(w_r)/Km) (J_L = load inertia, infinite when locked; w_r = N*(torsion rate of the identified compliance following r + integral of r/J_L), the motor velocity the reference asks for), e = r - y, back-calculation anti-windup",
+            "law": ("i = sat(kr*r/(N*Km) + kj*N*Jeff_hat*r/(J_L*Km) + kp*e + I - kd*dy_f + kf*Tf_hat(w)/Km"
+                    " + kfr*Tf_hat(w_r)/Km) (J_L = load inertia, infinite when locked; w_r = N*(torsion rate of"
+                    " the identified compliance following r + integral of r/J_L), the motor velocity the reference"
+                    " asks for), e = r - y, back-calculation anti-windup"),
             "sample_period_s": ts,
             "current_limit_A": ilim,
             "derivative_filter_s": df,
@@ -863,7 +866,8 @@ def _report(r: dict) -> str:
         f"{_fmt(v['tuned']['tracking_cost'])}: **{100 * v['improvement_over']['relay_zn']:.1f} % lower than relay + ZN, "
         f"{100 * v['improvement_over']['model_pi']:.1f} % lower than the model-based PI** (on the {kind}).",
         "",
-        "| reference | controller | cost | of which at the current limit | saturated samples (%) | RMS (N·m) | overshoot (%) | settling (s) | peak current (A) |",
+        "| reference | controller | cost | of which at the current limit | saturated samples (%) | RMS (N·m) "
+        "| overshoot (%) | settling (s) | peak current (A) |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for ref in REFERENCE_NAMES:

@@ -7,7 +7,6 @@ import sys
 
 from ._cli import command_main
 
-
 main = command_main("diagnose")
 
 if __name__ == "__main__":

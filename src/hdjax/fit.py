@@ -6,7 +6,6 @@ import sys
 
 from ._cli import command_main
 
-
 main = command_main("fit")
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ import sys
 
 from ._cli import command_main
 
-
 main = command_main("sensitivity")
 
 if __name__ == "__main__":

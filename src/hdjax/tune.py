@@ -9,7 +9,6 @@ import sys
 
 from ._cli import command_main
 
-
 main = command_main("tune")
 
 if __name__ == "__main__":
