@@ -43,12 +43,8 @@ NOT_YET = {
     "kinematic_error": "order-2 KE at 4x noise: +9.9 % held-out (folds 4.7 / 18.1 %, all records improved) but "
                        "not significant (a mode made worse beyond chance); nothing named",
     "cogging": "order-1 cogging at 4x noise: input_delay absorbs it in one fold (+97.6 % / -1.1 %), nothing named",
-    "position_dependent_friction": "named at order 2, +20 %, but a spurious torque_sensor_ripple follows (+4.5 %)",
     "nonlinear_stiffness": "cubic stiffness at 4x noise: only cogging/PDF gain, in one fold (improved 1 of 4 records)",
-    "load_dependent_friction": "not screened above 1.6 %; a spurious torque_sensor_ripple [1, 2] (+3.8 %) is named",
     "thermal_drift": "thermal drift at 4x noise over a 1.5 s x 8 session: no candidate predicted above 1 %",
-    "input_delay": "sensor_bandwidth (a lag on the sensed channels, +61 %) absorbs the 0.1 ms delay first; "
-                   "kinematic_error and rate_independent_hysteresis then gain in one fold only and are named",
     "rate_independent_hysteresis": "named (+2.7 %), but after a spurious torque_sensor_ripple [1, 2] (+9.4 %)",
 }
 
