@@ -43,8 +43,8 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    effect acts, not diluted by the other mode), far beyond the chance level of its parameter count
    (Δχ² > 10k + 50), also without the held-out experiment that gains most (a term that fits one
    odd experiment is no finding), and neither the locked nor the free tests may get worse beyond
-   that chance level (a term that fits one kind of test at the other's expense explains no
-   drive). The harm ratio (what the held-out experiments it makes worse lose over what
+   that chance level or a quarter of what the other gains (`MODE_TRADE`; a term that fits one kind
+   of test at the other's expense explains no drive). The harm ratio (what the held-out experiments it makes worse lose over what
    those it improves gain) is reported, not used: a real effect periodic in θm hurts free-motion
    tests whose simulated θm has drifted from the true one (measured 0.47 for a true kinematic
    error), as much as a chance fit does. Greedy: the best finding is added to the model and the
@@ -75,6 +75,13 @@ from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_paramet
 from ._model import Drive, Parameters
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._sharding import for_each_experiment
+
+#: A finding may make one kind of test (locked or free) worse by at most this share of the held-out
+#: Δχ² it gains on the other (and at most the chance level when that is larger). A true order-2
+#: kinematic error on the independent bench gained 26 % on the free tests and cost 4 % on the locked
+#: ones, whose misfit is dominated by the bench's stick–slip; with "no worse than chance" it was not
+#: named. A term fitted to one kind of test at the other's expense loses far more than this.
+MODE_TRADE = 0.25
 
 
 @dataclasses.dataclass(frozen=True)
@@ -618,8 +625,9 @@ def diagnose(
                     # is not diluted by the free-motion channels, and vice versa
                     mode_gains = {md: float(np.sum(d[modes == md]) / np.sum(e_before[modes == md]))
                                   for md in ("constrained", "free") if np.any(modes == md)}
-                    # and a term that makes one kind of test worse beyond chance explains no drive: a
-                    # spurious order-1 kinematic error fitted to locked tests loses on the free ones
+                    # and a term that makes one kind of test worse beyond chance, by more than a
+                    # `MODE_TRADE` share of what it gains on the other, explains no drive: a spurious
+                    # order-1 kinematic error fitted to locked tests loses on the free ones
                     mode_dchi = {md: float(np.sum(d[modes == md])) for md in mode_gains}
                     # consistency over records: most held-out experiments of the mode where it acts
                     # must improve (misfit that one term absorbs in a few records is no finding)
@@ -631,7 +639,7 @@ def diagnose(
                              mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
                              significant=bool(np.all(sse_after < sse_before) and max(mode_gains.values()) > min_relative_gain
                                               and dchi > chance and dchi_rest > chance
-                                              and min(mode_dchi.values()) > -chance
+                                              and min(mode_dchi.values()) > -max(chance, MODE_TRADE * max(mode_dchi.values()))
                                               and improved >= min_improved_fraction))
                     raw_after_of[c] = raw_after
                 else:
