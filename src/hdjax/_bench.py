@@ -594,7 +594,8 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed,
         rev = (mp & (k == 1)) | (mn & (k == 0))
         if rev.any():
             ko = np.where(wm > 0, 0, 1)
-            th = np.clip(wm / (wm - W[ko, cols]), 0.0, 1.0)
+            den = wm - W[ko, cols]  # non-zero where `rev` (the speed changes sign); the rest is discarded
+            th = np.clip(np.divide(wm, den, out=np.zeros_like(wm), where=den != 0), 0.0, 1.0)
             f0p = max(p["Tsp"] + p["Tssp1"], 0.0) * cmod + load
             f0n = max(p["Tsn"] + p["Tssn1"], 0.0) * cmod + load
             visc = F0[k, cols] - np.where(k == 0, fp, -fn)
