@@ -38,8 +38,6 @@ EFFECTS = list(PERIODIC) + [
 # leave-one-experiment-out held-out fits and the MODE_TRADE rule). Strict: a case that starts to
 # pass must be moved out of this list.
 NOT_YET = {
-    "cogging": "order-1 cogging at 4x noise: no residual order-spectrum peak, so periodic candidates are not "
-               "screened; nothing named",
     "nonlinear_stiffness": "cubic stiffness at 4x noise: not among the two best predicted; thermal_drift "
                            "(+53 %, one half -1.7 %) and input_delay gain in one half only",
     "thermal_drift": "thermal drift at 4x noise over a 1.5 s x 8 session: no candidate predicted above 1 %",

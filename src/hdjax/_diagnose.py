@@ -306,6 +306,7 @@ def diagnose(
     simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8),
     jacobian_rtol: float = 1e-5,
     cross_validation: str = "leave_one_out",
+    tb_route: bool = True,
     log=lambda *_: None,
 ) -> Diagnosis:
     """Find the SPEC §4 effects that the data show beyond the paper's model (see module docstring).
@@ -337,6 +338,7 @@ def diagnose(
     timing = {}
     t0 = time.perf_counter()
     candidates = [c for c in candidates if c != "presliding_friction"]
+    requested = set(candidates)
     unknown = sorted(set(candidates) - set(EFFECT_NAMES))
     if unknown:
         raise ValueError(f"`diagnose`: unknown candidate effect(s) {unknown}; known: {list(EFFECT_NAMES)}.")
@@ -390,18 +392,20 @@ def diagnose(
     t1 = time.perf_counter()
     traj = prob.trajectories(jnp.asarray(np.tile(z_cur, (n_exp, 1))), p_base, batch)
     timing["compile_and_base_simulation"] = time.perf_counter() - t1
-    evidence, orders = _evidence(batch, traj, m, modes, sigma)
-    if not orders:
-        # No order stands out in any residual order spectrum: a term periodic in θm has no evidence,
-        # and it is not screened. (Over the fraction of a turn that a locked test covers, sin/cos of
-        # a low order are smooth functions of the torque that absorb other misfit: with orders 1
-        # and 2 screened by default, a spurious torque_sensor_ripple [1, 2] was named on
-        # independent-bench datasets that hid load-dependent friction or hysteresis.)
-        dropped = [c for c in candidates if c in PERIODIC]
-        candidates = [c for c in candidates if c not in PERIODIC]
-        if dropped:
-            log(f"diagnose: no residual order-spectrum peak; periodic candidates not screened: {', '.join(dropped)}")
-    evidence["periodic_candidates_screened"] = bool(orders)
+    evidence, orders = _evidence(batch, traj, m, modes, sigma, p_base, drive)
+    orders_of = _orders_per_candidate(orders, evidence)
+    # A periodic effect is screened only at the orders its evidence proposes, and not at all when no
+    # order stands out. (Over the fraction of a turn that a locked test covers, sin/cos of a low
+    # order are smooth functions of the torque that absorb other misfit: with orders 1 and 2
+    # screened by default, a spurious torque_sensor_ripple [1, 2] was named on independent-bench
+    # datasets that hid load-dependent friction or hysteresis.)
+    dropped = [c for c in candidates if c in PERIODIC and not orders_of.get(c)]
+    candidates = [c for c in candidates if c not in dropped]
+    if dropped:
+        log(f"diagnose: no order-spectrum peak for {', '.join(dropped)}: not screened")
+    log("diagnose: periodic candidates screened at orders " + ", ".join(f"{c} {orders_of[c]}" for c in candidates if c in PERIODIC))
+    evidence["periodic_candidates_screened"] = bool(any(orders_of.values()))
+    evidence["candidate_orders_per_effect"] = {c: orders_of[c] for c in candidates if c in PERIODIC}
     folds = np.arange(n_exp) % 2
     for md in ("constrained", "free"):  # each fold holds both modes when possible
         idx = np.where(modes == md)[0]
@@ -417,7 +421,7 @@ def diagnose(
     else:
         raise ValueError(f"`diagnose`: cross_validation must be 'leave_one_out' or 'two_fold', got {cross_validation!r}.")
 
-    cand_idx = {c: [n_base + j for j in _candidate_columns(cols, c, orders)] for c in list(candidates) + model_form}
+    cand_idx = {c: [n_base + j for j in _candidate_columns(cols, c, orders_of.get(c, ()))] for c in list(candidates) + model_form}
     timing["jacobians"] = 0.0
     timing["simulations"] = 0.0
     all_rows = np.ones(n_exp, bool)
@@ -429,6 +433,9 @@ def diagnose(
     noise_model: _NoiseModel | None = None  # set in each round: every residual and Jacobian is whitened by it
 
     jac_cache: dict[int, np.ndarray] = {}  # column → unwhitened Jacobian column (exp, channel, time)
+    th_span = np.array([np.ptp(np.asarray(traj.motor_position[e])[m[e]]) if m[e].any() else 0.0 for e in range(n_exp)])
+    unresolved = {n_base + j: (c.index + 1) * th_span < 2.0 * math.pi for j, c in enumerate(cols) if c.index is not None}
+    unresolved = {j: u for j, u in unresolved.items() if u.any()}
 
     def jacobian(z, sel, *, reuse=False):
         """Whitened Jacobian columns `sel` at z. With `reuse`, columns computed in an earlier round
@@ -445,6 +452,12 @@ def diagnose(
             Jn = np.array(Jn)
             for k, j in enumerate(need):
                 jac_cache[j] = Jn[..., k]
+                if j in unresolved:
+                    # a periodic term over less than one of its cycles is a smooth function of θm that
+                    # absorbs other misfit (a locked test turns the wave generator by a fraction of a
+                    # turn): it is fitted, and its fit judged, only where it completes a cycle (its
+                    # simulated effect everywhere still enters every held-out figure)
+                    jac_cache[j][unresolved[j]] = 0.0
             timing["jacobians"] += time.perf_counter() - t1
         J = np.stack([jac_cache[j] for j in sel], axis=-1)
         if noise_model is not None:
@@ -469,6 +482,59 @@ def diagnose(
     remaining = list(candidates)
     base_res = None
     r_cur, r_raw = simulate_each(np.tile(z_cur, (n_exp, 1)))
+    # Torque-balance route (cogging, position-dependent friction), before the output-error rounds:
+    # an order that stands out in the torque-balance spectrum (measured signals, eq. 8) is judged
+    # by its held-out gain in that residual, record by record. The output-error screening cannot
+    # resolve these: a torque disturbance integrates into the velocity with opposite phase in the
+    # two directions of motion, and the paper model's free-motion misfit hides what is left. A term
+    # found here keeps its torque-balance fit (its columns are not re-fitted by the output-error
+    # rounds) and counts towards `max_findings`.
+    tb_found: list[str] = []
+    if tb_route:
+        seen_torque = {k for w, k, *_ in _spectral_peaks(batch, traj, m, modes, sigma)[1] if w.endswith("/torque")}
+        for where, k, over_med, over_max in sorted(_torque_balance_spectrum(batch, traj, m, modes, p_base, drive)[1],
+                                                   key=lambda x: -x[2]):
+            name = "position_dependent_friction" if where.endswith("sign(w)") else "cogging"
+            if name in tb_found or name not in requested or len(tb_found) >= max_findings:
+                continue
+            if name == "cogging" and k in seen_torque:
+                continue  # a ripple of the strain gauge (seen in the torque residual) also shows here
+            cv = _torque_balance_cv(batch, traj, m, modes, p_base, drive, name, k)
+            if cv is None:
+                continue
+            log(f"diagnose: torque balance: {name} [{k}] peak {over_med:.1f}× median, held-out gain {100 * cv['gain']:+.2f} % "
+                f"(improved in {cv['n_improved']} of {cv['n_records']} records)")
+            if not (cv["gain"] > 0 and cv["improved_fraction"] >= min_improved_fraction):
+                continue
+            jcols = [n_base + j for j in _candidate_columns(cols, name, [k])]  # sin, cos of order k
+            scale = np.array([cols[j - n_base].scale for j in jcols])
+            zs = np.tile(z_cur, (n_exp, 1))
+            for e in range(n_exp):
+                zs[e, jcols] = cv["coef_without"].get(e, cv["coef"]) / scale
+            _, raw_a = simulate_each(zs)
+            d = per_exp(r_raw) - per_exp(raw_a)
+            # reported, not a veto: on the independent bench a true order-1 cogging (fitted at 80 % of
+            # its amplitude, phase right) made the simulated output error worse, most of it in a slow
+            # free test that turns the wave generator by 1 rad
+            log(f"  simulated held-out SSE (sensor-noise units) change {-float(np.sum(d)):+.1f}")
+            z_cur[jcols] = cv["coef"] / scale
+            cand_idx[name] = jcols
+            orders_of[name] = sorted(set(orders_of.get(name, [])) | {k})
+            tb_found.append(name)
+            if name in remaining:
+                remaining.remove(name)
+            findings.append({
+                "effect": name,
+                "confidence": round(float(1.0 - 2.0 ** -cv["n_improved"]), 4),
+                "gain": {"heldout_nrmse_before": _channel_nrmse(r_raw, sig_exp, batch, m),
+                         "heldout_nrmse_after": _channel_nrmse(raw_a, sig_exp, batch, m),
+                         "relative_reduction": cv["gain"], "fold_reductions": cv["fold_gains"],
+                         "heldout_torque_balance_reduction": cv["gain"],
+                         "heldout_output_error_sse_reduction": float(np.sum(d))},
+                "_round": None, "_tb": {"order": k, "over_median": over_med, "over_max": over_max, **cv},
+            })
+        if tb_found:
+            r_cur, r_raw = simulate_each(np.tile(z_cur, (n_exp, 1)))
     for rnd in range(max_findings + 1):
         # round 0 first screens the base model's own assumptions (model_form) and adopts every
         # significant one, then screens the effects against that base model, with the same Jacobian
@@ -704,22 +770,34 @@ def diagnose(
                 "_round": len(rounds) - 1,
             })
             remaining.remove(best)
-        if stop or len(chosen) >= max_findings:
+        if stop or len(chosen) + len(tb_found) >= max_findings:
             break
 
     current_p = pmap.to_params(jnp.asarray(z_cur[:n_base]), p_base)
-    final_effects = _apply(_fixed_effect_settings(ctx, adopted + chosen), cols, z_cur[n_base:])
+    final_effects = _apply(_fixed_effect_settings(ctx, adopted + chosen + tb_found), cols, z_cur[n_base:])
     for f in form_items:
         f["adjustment"] = {k: float(getattr(final_effects, k)) for k in MODEL_FORM[f["assumption"]]}
         f["evidence"] = _evidence_text(f["assumption"], evidence, rounds[f.pop("_round")], f)
     for f in findings:
-        f["parameters"], f["orders"] = _describe(final_effects, f["effect"], orders)
-        f["evidence"] = _evidence_text(f["effect"], evidence, rounds[f.pop("_round")], f)
+        f["parameters"], f["orders"] = _describe(final_effects, f["effect"], orders_of.get(f["effect"], ()))
+        rnd = f.pop("_round")
+        tb = f.pop("_tb", None)
+        if tb is None:
+            f["evidence"] = _evidence_text(f["effect"], evidence, rounds[rnd], f)
+        else:
+            f["evidence"] = (f"the motor torque-balance residual (eq. 8 from measured current, torque and velocity) of the "
+                             f"free-motion tests is periodic at order {tb['order']} per wave-generator turn"
+                             f"{' times the direction of motion' if f['effect'] == 'position_dependent_friction' else ''} "
+                             f"({tb['over_median']:.1f}× the median and {tb['over_max']:.1f}× the largest amplitude at "
+                             f"neighbouring non-integer orders); fitted without each record, it reduces that record's "
+                             f"residual by {100 * tb['gain']:.1f} % in total, in {tb['n_improved']} of {tb['n_records']} "
+                             f"records; the output-error screening did not resolve it (a torque disturbance integrates "
+                             f"into the velocity with opposite phase in the two directions of motion)")
         if f["orders"] is None:
             f.pop("orders")
     # torque of the final base parameters without / with the effects (figures), and what is left
     z_plain = z_cur.copy()
-    z_plain[[j for c in chosen for j in cand_idx[c]]] = 0.0
+    z_plain[[j for c in chosen + tb_found for j in cand_idx[c]]] = 0.0
     tr0 = prob.trajectories(jnp.asarray(np.tile(z_plain, (n_exp, 1))), p_base, batch)
     tr1 = prob.trajectories(jnp.asarray(np.tile(z_cur, (n_exp, 1))), p_base, batch) if findings else tr0
     traces = {"torque_base": np.asarray(tr0.torque), "torque_extended": np.asarray(tr1.torque),
@@ -781,7 +859,145 @@ def _spectral_peaks(batch, traj, m, modes, sigma):
     return spectra, peaks
 
 
-def _evidence(batch, traj, m, modes, sigma):
+#: Torque-balance spectrum (free-motion tests that turn the wave generator through ≥ 2 turns, samples
+#: at |ωm| > `TB_MIN_SPEED` rad/s): an integer order counts as a peak where its amplitude exceeds
+#: `TB_MEDIAN_RATIO` × the median and `TB_MAX_RATIO` × the largest amplitude at the non-integer
+#: orders within ±1.5 of it (misfit that is not periodic in θm spreads over integer and non-integer
+#: orders alike). Measured on 32 independent-bench datasets (2026-11-25): true cogging, ripple and
+#: position-dependent friction at 3–6× the sensor noise 4.7–15.7 × median and 2.1–7.2 × max; every
+#: other (order, dataset) ≤ 4.7 × median and ≤ 2.05 × max, never both above the thresholds.
+TB_MIN_SPEED, TB_MEDIAN_RATIO, TB_MAX_RATIO = 1.0, 4.5, 1.8
+
+
+def _torque_balance_spectrum(batch, traj, m, modes, p: Parameters, drive: Drive):
+    """Order spectra of the motor torque-balance residual e = Km·i − T/N − Tf(ω) − Jeff·dω/dt, all
+    from *measured* signals (eq. 8 with the base parameters), against the wave-generator angle θm,
+    in free-motion tests; and of e·sign(ω). Cogging and strain-gauge ripple add a term periodic in
+    θm to e; position-dependent friction one periodic in θm times sign(ω); a kinematic error does
+    not show (the measured torque already carries it). Unlike the simulated residuals, e does not
+    integrate a torque disturbance into the velocity, which cancels between the two directions of
+    motion. Returns ({"e": amplitudes, "e*sign(w)": amplitudes} per order 1..MAX_ORDER, peaks as
+    (where, order, ratio to median, ratio to max, amplitude in N·m))."""
+    from ._model import friction_torque
+
+    N, Km, Jeff = float(drive.gear_ratio), float(drive.torque_constant), float(p.Jeff)
+    es, ths, sgs = [], [], []
+    for i in np.where(modes == "free")[0]:
+        mi = m[i]
+        t = np.asarray(batch.time[i])[mi]
+        w = np.asarray(batch.motor_velocity[i])[mi]
+        th = np.asarray(traj.motor_position[i])[mi]
+        if len(t) < 10 or np.ptp(th) < 4.0 * math.pi:
+            continue
+        e = (Km * np.asarray(batch.current[i])[mi] - np.asarray(batch.torque[i])[mi] / N
+             - np.asarray(friction_torque(p, w)) - Jeff * np.gradient(w, t))
+        keep = np.abs(w) > TB_MIN_SPEED
+        if keep.sum() < 10:
+            continue
+        e = e[keep] - np.median(e[keep])
+        scale = 1.4826 * float(np.median(np.abs(e))) or 1.0  # every record at unit robust scale
+        es.append(e / scale), ths.append(th[keep]), sgs.append(np.sign(w[keep]))
+    if not es:
+        return {}, []
+    th = np.concatenate(ths)
+    ks = np.arange(1, MAX_ORDER + 1)
+    null = np.array([q for q in np.arange(0.5, MAX_ORDER + 1.0, 0.05) if abs(q - round(q)) > 0.24])
+
+    def amplitudes(r, qs):
+        out = []
+        for q in qs:
+            X = np.stack([np.sin(q * th), np.cos(q * th), np.ones_like(th)], axis=1)
+            c, *_ = np.linalg.lstsq(X, r, rcond=None)
+            out.append(math.hypot(c[0], c[1]))
+        return np.asarray(out)
+
+    spectra, peaks = {}, []
+    for where, r in (("e", np.concatenate(es)), ("e*sign(w)", np.concatenate(es) * np.concatenate(sgs))):
+        a, a0 = amplitudes(r, ks), amplitudes(r, null)
+        near = [np.abs(null - k) <= 1.5 for k in ks]
+        med = np.array([np.median(a0[n]) for n in near])
+        mx = np.array([np.max(a0[n]) for n in near])
+        spectra[where] = {"amplitude": a.tolist(), "over_median": (a / med).tolist(), "over_max": (a / mx).tolist()}
+        for j in np.where((a > TB_MEDIAN_RATIO * med) & (a > TB_MAX_RATIO * mx))[0]:
+            peaks.append((f"free/torque_balance {where}", int(ks[j]), float(a[j] / med[j]), float(a[j] / mx[j])))
+    return spectra, peaks
+
+
+def _torque_balance_terms(batch, traj, m, modes, p: Parameters, drive: Drive, name: str, order: int):
+    """Per fast free-motion record (as in `_torque_balance_spectrum`): (experiment index, target y,
+    regressors X (sin, cos), robust scale) with y ≈ X·β, β the effect's sin/cos coefficients of
+    `order` in `Effects` units (cogging: N·m; position-dependent friction: fraction of Coulomb)."""
+    from ._model import friction_torque
+
+    N, Km, Jeff = float(drive.gear_ratio), float(drive.torque_constant), float(p.Jeff)
+    out = []
+    for i in np.where(modes == "free")[0]:
+        mi = m[i]
+        t = np.asarray(batch.time[i])[mi]
+        w = np.asarray(batch.motor_velocity[i])[mi]
+        th = np.asarray(traj.motor_position[i])[mi]
+        if len(t) < 10 or np.ptp(th) < 4.0 * math.pi:
+            continue
+        e = (Km * np.asarray(batch.current[i])[mi] - np.asarray(batch.torque[i])[mi] / N
+             - np.asarray(friction_torque(p, w)) - Jeff * np.gradient(w, t))
+        keep = np.abs(w) > TB_MIN_SPEED
+        if keep.sum() < 10:
+            continue
+        e, w, th = e[keep], w[keep], th[keep]
+        base = np.stack([np.sin(order * th), np.cos(order * th)], axis=1)
+        if name == "cogging":  # e = −(cogging torque)
+            y, X = e, -base
+        else:  # e = sign(ω)·Ts(direction)·(periodic)
+            coul = np.where(w > 0, abs(float(p.Tsp)), abs(float(p.Tsn)))
+            y, X = e * np.sign(w), coul[:, None] * base
+        y = y - np.median(y)
+        X = X - np.mean(X, axis=0)
+        out.append((int(i), y, X, 1.4826 * float(np.median(np.abs(y))) or 1.0))
+    return out
+
+
+def _torque_balance_cv(batch, traj, m, modes, p, drive, name, order):
+    """Leave-one-record-out check of a periodic term in the torque-balance residual: each fast
+    free-motion record is predicted by the weighted least-squares fit on the others. Returns the
+    total held-out gain, per-half gains, the improved fraction, the all-record coefficients and
+    those without each record; None with fewer than two records."""
+    terms = _torque_balance_terms(batch, traj, m, modes, p, drive, name, order)
+    if len(terms) < 2:
+        return None
+
+    def fit(rows):
+        A = sum(X.T @ X / s**2 for _, _, X, s in rows)
+        b = sum(X.T @ y / s**2 for _, y, X, s in rows)
+        return np.linalg.solve(A, b)
+
+    before, after, without = [], [], {}
+    for j, (e, y, X, s) in enumerate(terms):
+        beta = fit([t for i, t in enumerate(terms) if i != j])
+        without[e] = beta
+        before.append(float(np.sum((y / s) ** 2)))
+        after.append(float(np.sum(((y - X @ beta) / s) ** 2)))
+    before, after = np.array(before), np.array(after)
+    halves = np.arange(len(terms)) % 2
+    return {"gain": float(1.0 - after.sum() / before.sum()),
+            "fold_gains": [float(1.0 - after[halves == h].sum() / before[halves == h].sum()) for h in (0, 1)],
+            "improved_fraction": float(np.mean(after < before)), "n_improved": int(np.sum(after < before)),
+            "n_records": len(terms), "coef": fit(terms), "coef_without": without}
+
+
+def _orders_per_candidate(orders, evidence) -> dict:
+    """Orders at which each periodic effect is screened: those of the output-error spectra for all;
+    torque-balance peaks of e add cogging and strain-gauge ripple, those of e·sign(ω)
+    position-dependent friction (strongest first, at most four per effect)."""
+    out = {c: list(orders) for c in PERIODIC}
+    for pk in sorted(evidence.get("torque_balance_peaks", []), key=lambda x: -x["over_median"]):
+        targets = ("position_dependent_friction",) if pk["where"].endswith("sign(w)") else ("cogging", "torque_sensor_ripple")
+        for c in targets:
+            if pk["order"] not in out[c] and len(out[c]) < 4:
+                out[c].append(pk["order"])
+    return {c: sorted(v) for c, v in out.items()}
+
+
+def _evidence(batch, traj, m, modes, sigma, p=None, drive=None):
     spectra, peak_list = _spectral_peaks(batch, traj, m, modes, sigma)
     res_T = (np.asarray(traj.torque) - np.asarray(batch.torque))
     res_w = (np.asarray(traj.motor_velocity) - np.asarray(batch.motor_velocity))
@@ -808,7 +1024,10 @@ def _evidence(batch, traj, m, modes, sigma):
         for name, x in covs.items():
             cov[md][name] = {ch: (float(np.corrcoef(x, r)[0, 1]) if np.std(x) > 0 and np.std(r) > 0 else 0.0)
                              for ch, r in (("torque", rT), ("motor_velocity", rw))}
+    tb_spectra, tb_peaks = _torque_balance_spectrum(batch, traj, m, modes, p, drive) if p is not None else ({}, [])
     return {"order_spectra": spectra, "candidate_orders": orders, "correlations": cov,
+            "torque_balance_spectra": tb_spectra,
+            "torque_balance_peaks": [{"where": w, "order": k, "over_median": a, "over_max": b} for w, k, a, b in tb_peaks],
             "spectral_peaks": [{"where": w, "order": k, "amplitude": a_si, "normalised_amplitude": a, "threshold": t}
                                for w, k, a, t, a_si in peak_list]}, orders
 
@@ -868,7 +1087,8 @@ def _evidence_text(name, evidence, round_scores, finding) -> str:
            f"{', '.join(f'{100 * x:.1f} %' for x in g['fold_reductions'])}; "
            f"{', '.join(f'{k} tests {100 * x:.1f} %' for k, x in g['mode_reductions'].items())})")
     if name in PERIODIC:
-        txt += f"; residual order spectra peak at orders {evidence['candidate_orders']} per wave-generator turn"
+        txt += (f"; residual order spectra peak at orders {evidence['candidate_orders']} per wave-generator turn"
+                f" (orders screened for {name}: {evidence['candidate_orders_per_effect'].get(name)})")
     others = sorted(((c, s["gain"]) for c, s in round_scores.items() if c != name), key=lambda x: -x[1])[:2]
     if others:
         txt += "; next best candidates: " + ", ".join(f"{c} ({100 * v:.1f} %)" for c, v in others)
