@@ -887,19 +887,13 @@ def _spectral_peaks(batch, traj, m, modes, sigma):
 TB_MIN_SPEED, TB_MEDIAN_RATIO, TB_MAX_RATIO = 1.0, 4.5, 1.8
 
 
-def _torque_balance_spectrum(batch, traj, m, modes, p: Parameters, drive: Drive):
-    """Order spectra of the motor torque-balance residual e = Km·i − T/N − Tf(ω) − Jeff·dω/dt, all
-    from *measured* signals (eq. 8 with the base parameters), against the wave-generator angle θm,
-    in free-motion tests; and of e·sign(ω). Cogging and strain-gauge ripple add a term periodic in
-    θm to e; position-dependent friction one periodic in θm times sign(ω); a kinematic error does
-    not show (the measured torque already carries it). Unlike the simulated residuals, e does not
-    integrate a torque disturbance into the velocity, which cancels between the two directions of
-    motion. Returns ({"e": amplitudes, "e*sign(w)": amplitudes} per order 1..MAX_ORDER, peaks as
-    (where, order, ratio to median, ratio to max, amplitude in N·m))."""
+def _torque_balance_residuals(batch, traj, m, modes, p: Parameters, drive: Drive):
+    """Per free-motion record that turns the wave generator ≥ 2 turns: (experiment index, e, ωm, θm)
+    at the samples with |ωm| > `TB_MIN_SPEED`, e = Km·i − T/N − Tf(ω) − Jeff·dω/dt (N·m) from the
+    measured current, torque and velocity, θm the simulated wave-generator angle (rad)."""
     from ._model import friction_torque
 
     N, Km, Jeff = float(drive.gear_ratio), float(drive.torque_constant), float(p.Jeff)
-    es, ths, sgs = [], [], []
     for i in np.where(modes == "free")[0]:
         mi = m[i]
         t = np.asarray(batch.time[i])[mi]
@@ -910,11 +904,24 @@ def _torque_balance_spectrum(batch, traj, m, modes, p: Parameters, drive: Drive)
         e = (Km * np.asarray(batch.current[i])[mi] - np.asarray(batch.torque[i])[mi] / N
              - np.asarray(friction_torque(p, w)) - Jeff * np.gradient(w, t))
         keep = np.abs(w) > TB_MIN_SPEED
-        if keep.sum() < 10:
-            continue
-        e = e[keep] - np.median(e[keep])
+        if keep.sum() >= 10:
+            yield int(i), e[keep], w[keep], th[keep]
+
+
+def _torque_balance_spectrum(batch, traj, m, modes, p: Parameters, drive: Drive):
+    """Order spectra of the motor torque-balance residual e = Km·i − T/N − Tf(ω) − Jeff·dω/dt, all
+    from *measured* signals (eq. 8 with the base parameters), against the wave-generator angle θm,
+    in free-motion tests; and of e·sign(ω). Cogging and strain-gauge ripple add a term periodic in
+    θm to e; position-dependent friction one periodic in θm times sign(ω); a kinematic error does
+    not show (the measured torque already carries it). Unlike the simulated residuals, e does not
+    integrate a torque disturbance into the velocity, which cancels between the two directions of
+    motion. Returns ({"e": amplitudes, "e*sign(w)": amplitudes} per order 1..MAX_ORDER, peaks as
+    (where, order, ratio to median, ratio to max, amplitude in N·m))."""
+    es, ths, sgs = [], [], []
+    for _, e, w, th in _torque_balance_residuals(batch, traj, m, modes, p, drive):
+        e = e - np.median(e)
         scale = 1.4826 * float(np.median(np.abs(e))) or 1.0  # every record at unit robust scale
-        es.append(e / scale), ths.append(th[keep]), sgs.append(np.sign(w[keep]))
+        es.append(e / scale), ths.append(th), sgs.append(np.sign(w))
     if not es:
         return {}, []
     th = np.concatenate(ths)
@@ -945,23 +952,8 @@ def _torque_balance_terms(batch, traj, m, modes, p: Parameters, drive: Drive, na
     """Per fast free-motion record (as in `_torque_balance_spectrum`): (experiment index, target y,
     regressors X (sin, cos), robust scale) with y ≈ X·β, β the effect's sin/cos coefficients of
     `order` in `Effects` units (cogging: N·m; position-dependent friction: fraction of Coulomb)."""
-    from ._model import friction_torque
-
-    N, Km, Jeff = float(drive.gear_ratio), float(drive.torque_constant), float(p.Jeff)
     out = []
-    for i in np.where(modes == "free")[0]:
-        mi = m[i]
-        t = np.asarray(batch.time[i])[mi]
-        w = np.asarray(batch.motor_velocity[i])[mi]
-        th = np.asarray(traj.motor_position[i])[mi]
-        if len(t) < 10 or np.ptp(th) < 4.0 * math.pi:
-            continue
-        e = (Km * np.asarray(batch.current[i])[mi] - np.asarray(batch.torque[i])[mi] / N
-             - np.asarray(friction_torque(p, w)) - Jeff * np.gradient(w, t))
-        keep = np.abs(w) > TB_MIN_SPEED
-        if keep.sum() < 10:
-            continue
-        e, w, th = e[keep], w[keep], th[keep]
+    for i, e, w, th in _torque_balance_residuals(batch, traj, m, modes, p, drive):
         base = np.stack([np.sin(order * th), np.cos(order * th)], axis=1)
         if name == "cogging":  # e = −(cogging torque)
             y, X = e, -base
