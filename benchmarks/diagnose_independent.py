@@ -20,6 +20,7 @@ import tempfile
 import time
 
 import jax
+import yaml
 
 jax.config.update("jax_enable_x64", True)
 
@@ -76,18 +77,35 @@ def hidden(effects: dict) -> dict:
     return {k: sorted(v.get("orders") or []) if k in PERIODIC else [] for k, v in effects.items()}
 
 
+def _matches(folder: pathlib.Path, case: dict) -> bool:
+    """True if `folder` holds a dataset made for `case` (same seed, drive and hidden effects)."""
+    f = folder / "truth.yaml"
+    if not f.exists():
+        return False
+    truth = yaml.safe_load(f.read_text())
+    fx = truth.get("effects") or {}
+    return (truth.get("seed") == case["seed"] and str(truth.get("drive_name", "")).lower() == case["drive"]
+            and set(fx) == set(case["effects"])
+            and all(abs(fx[k]["snr_target"] - v["snr"]) < 1e-9 and fx[k].get("orders") == v.get("orders")
+                    for k, v in case["effects"].items()))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=20)
     ap.add_argument("--first", type=int, default=0)
     ap.add_argument("--json", default=None, help="write the per-dataset rows here")
+    ap.add_argument("--datasets", default=None,
+                    help="keep the generated datasets in this folder (one sub-folder per seed) and reuse those "
+                         "already there whose truth.yaml has the planned seed, drive and effects")
     args = ap.parse_args()
     rows = []
     for case in plan(args.n, args.first):
         with tempfile.TemporaryDirectory() as tmp:
-            folder = pathlib.Path(tmp) / "ds"
-            make_dataset(folder, drive=case["drive"], seed=case["seed"], n_locked=8, n_free=8, duration=2.5,
-                         effects=case["effects"] or None)
+            folder = pathlib.Path(args.datasets or tmp) / f"seed_{case['seed']}"
+            if not _matches(folder, case):
+                make_dataset(folder, drive=case["drive"], seed=case["seed"], n_locked=8, n_free=8, duration=2.5,
+                             effects=case["effects"] or None)
             ds = load_dataset(folder)
         exps = [ds.experiments[i] for i in ds.dynamic_indices()]
         t0 = time.perf_counter()
