@@ -26,10 +26,8 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from hdjax._bench import make_dataset  # noqa: E402
-from hdjax._data import load_dataset  # noqa: E402
-from hdjax._diagnose import diagnose  # noqa: E402
-from hdjax._paper_id import identify_paper  # noqa: E402
+from hdjax import diagnose_effects as diagnose, identify_paper, load_dataset  # noqa: E402
+from hdjax.bench import make_dataset  # noqa: E402
 
 EFFECTS = [
     "kinematic_error", "torque_sensor_ripple", "cogging", "position_dependent_friction", "nonlinear_stiffness",

@@ -23,7 +23,7 @@ import equinox as eqx  # noqa: E402
 import numpy as np  # noqa: E402
 
 import hdjax  # noqa: E402
-from hdjax._data import load_dataset  # noqa: E402
+from hdjax import load_dataset  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEG = 180.0 / np.pi

@@ -31,8 +31,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import hdjax  # noqa: E402
-from hdjax._bench import make_dataset  # noqa: E402
-from hdjax._data import load_dataset  # noqa: E402
+from hdjax import load_dataset  # noqa: E402
+from hdjax.bench import make_dataset  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 FREE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")

@@ -12,10 +12,12 @@ from ._control import (
     TorqueController as TorqueController,
     TorqueGains as TorqueGains,
     closed_loop as closed_loop,
+    doublet_reference as doublet_reference,
     sine_reference as sine_reference,
     step_reference as step_reference,
     tracking_cost as tracking_cost,
 )
+from ._data import Dataset as Dataset, DatasetError as DatasetError, load_dataset as load_dataset, write_dataset as write_dataset
 from ._diagnose import Diagnosis as Diagnosis, covariate_drifts as covariate_drifts, diagnose as diagnose_effects  # noqa: F401 (public alias)
 from ._effects import EFFECT_NAMES as EFFECT_NAMES, Effects as Effects
 from ._experiment import (
@@ -24,7 +26,7 @@ from ._experiment import (
     stack_experiments as stack_experiments,
     unstack_experiments as unstack_experiments,
 )
-from ._fit import fit_parameters as fit_parameters
+from ._fit import fit_parameters as fit_parameters, noise_levels as noise_levels
 from ._friction import (
     FrictionParameters as FrictionParameters,
     FrictionStructure as FrictionStructure,
