@@ -25,7 +25,8 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    (position-dependent friction) peak that no strain-gauge ripple explains (a ripple b shows as b/N
    in e and as b in the torque residual; cogging is skipped where the torque residual's amplitude
    at that order exceeds half of N × the fitted cogging amplitude) is fitted by weighted least squares on all fast free tests but one and
-   must reduce the held-out test's torque-balance residual in `min_improved_fraction` of them.
+   must reduce the held-out test's torque-balance residual in `min_improved_fraction` of them,
+   and in total by more than `TB_MIN_GAIN` (0.5 %).
    The output-error rounds do not resolve these terms on a bench the paper model misfits: a torque
    disturbance integrates into the velocity with opposite phase in the two directions of motion.
    The term keeps that fit; its simulated output-error change is reported.
@@ -534,7 +535,7 @@ def diagnose(
                 continue
             log(f"diagnose: torque balance: {name} [{k}] peak {over_med:.1f}× median, held-out gain {100 * cv['gain']:+.2f} % "
                 f"(improved in {cv['n_improved']} of {cv['n_records']} records)")
-            if not (cv["gain"] > 0 and cv["improved_fraction"] >= min_improved_fraction):
+            if not (cv["gain"] > TB_MIN_GAIN and cv["improved_fraction"] >= min_improved_fraction):
                 continue
             jcols = [n_base + j for j in _candidate_columns(cols, name, [k])]  # sin, cos of order k
             scale = np.array([cols[j - n_base].scale for j in jcols])
@@ -897,6 +898,11 @@ def _spectral_peaks(batch, traj, m, modes, sigma):
 #: position-dependent friction at 3–6× the sensor noise 4.7–15.7 × median and 2.1–7.2 × max; every
 #: other (order, dataset) ≤ 4.7 × median and ≤ 2.05 × max, never both above the thresholds.
 TB_MIN_SPEED, TB_MEDIAN_RATIO, TB_MAX_RATIO = 1.0, 4.5, 1.8
+#: Smallest held-out torque-balance gain that names a term by the torque-balance route. Measured on
+#: independent-bench datasets (2026-11-25, seventh session): true cogging / position-dependent
+#: friction +1.43 % to +8.37 % (7 datasets); a position-dependent friction [2] proposed by the
+#: order-2 kinematic error of seed 5014 (peak 4.6 × median, 4 of 5 records improved) +0.09 %.
+TB_MIN_GAIN = 0.005
 
 
 def _torque_balance_residuals(batch, traj, m, modes, p: Parameters, drive: Drive):
