@@ -37,6 +37,7 @@ PERIODIC = {"kinematic_error", "torque_sensor_ripple", "cogging", "position_depe
 # the size of a hidden effect is its RMS change in torque or motor velocity over the sensor noise
 # (the output encoder's quantisation noise is far below what the current's noise does to position)
 CHANNELS = ("torque", "motor_velocity")
+N_LOCKED, N_FREE, DURATION = 8, 8, 2.5  # records per dataset, seconds each
 PAIRS = [("torque_sensor_ripple", "load_dependent_friction"), ("kinematic_error", "thermal_drift")]
 
 
@@ -76,13 +77,15 @@ def hidden(effects: dict) -> dict:
 
 
 def _matches(folder: pathlib.Path, case: dict) -> bool:
-    """True if `folder` holds a dataset made for `case` (same seed, drive and hidden effects)."""
+    """True if `folder` holds a dataset made for `case`: same seed, drive, number of records, and
+    hidden effects with the same SNR and orders."""
     f = folder / "truth.yaml"
     if not f.exists():
         return False
     truth = yaml.safe_load(f.read_text())
     fx = truth.get("effects") or {}
     return (truth.get("seed") == case["seed"] and str(truth.get("drive_name", "")).lower() == case["drive"]
+            and len(truth.get("experiments") or []) == N_LOCKED + N_FREE
             and set(fx) == set(case["effects"])
             and all(abs(fx[k]["snr_target"] - v["snr"]) < 1e-9 and fx[k].get("orders") == v.get("orders")
                     for k, v in case["effects"].items()))
@@ -102,7 +105,7 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as tmp:
             folder = pathlib.Path(args.datasets or tmp) / f"seed_{case['seed']}"
             if not _matches(folder, case):
-                make_dataset(folder, drive=case["drive"], seed=case["seed"], n_locked=8, n_free=8, duration=2.5,
+                make_dataset(folder, drive=case["drive"], seed=case["seed"], n_locked=N_LOCKED, n_free=N_FREE, duration=DURATION,
                              effects=case["effects"] or None)
             ds = load_dataset(folder)
         exps = [ds.experiments[i] for i in ds.dynamic_indices()]
