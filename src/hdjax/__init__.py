@@ -56,4 +56,7 @@ from ._plant import (
 from ._solver import Rodas3 as Rodas3
 from ._stepper import VelocityImplicit as VelocityImplicit
 
-__version__ = importlib.metadata.version("hdjax")
+try:
+    __version__ = importlib.metadata.version("hdjax")
+except importlib.metadata.PackageNotFoundError:  # run from a source tree (PYTHONPATH=src), not installed
+    __version__ = "0+source"
