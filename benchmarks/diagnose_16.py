@@ -13,10 +13,12 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from hdjax import Effects  # noqa: E402
-from hdjax._diagnose import diagnose  # noqa: E402
-from hdjax._paper_id import identify_paper  # noqa: E402
-from hdjax._rig import campaign, hide_effect, run_campaign, station_hd1, station_hd2  # noqa: E402
+from hdjax import (  # noqa: E402
+    Effects,
+    diagnose_effects as diagnose,  # noqa: E402
+    identify_paper,
+)
+from hdjax.rig import campaign, hide_effect, run_campaign, station_hd1, station_hd2  # noqa: E402
 
 effect = sys.argv[1] if len(sys.argv) > 1 else "kinematic_error"
 station = {"hd1": station_hd1, "hd2": station_hd2}[sys.argv[2] if len(sys.argv) > 2 else "hd1"]()

@@ -15,8 +15,8 @@ What is compared (all sides identical except for the numerics engine):
   `hdjax.initial_state`; `start_fits` gives the same fits to scipy and CasADi), piecewise-linear
   current;
 - residuals: torque, motor velocity and (free motion) output position, each divided by the same
-  noise levels (`hdjax._fit.noise_levels`, computed once and given to all), the output-position
-  residual projected off {offset, slope} per experiment, as `hdjax._fit.experiment_residuals`;
+  noise levels (`hdjax.noise_levels`, computed once and given to all), the output-position
+  residual projected off {offset, slope} per experiment, as `hdjax.experiment_residuals`;
 - unknowns: the same nine parameters (`DEFAULT_FREE`) in the same unconstrained coordinates (log
   of the positive ones, Stribeck amplitudes scaled by their start value; `to_params`/`to_theta`,
   written symbolically on the CasADi side); alpha, Tss2 fixed;
@@ -102,10 +102,16 @@ from scipy.integrate import solve_ivp  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 import hdjax  # noqa: E402
-from hdjax._data import load_dataset  # noqa: E402
-from hdjax._experiment import Experiment  # noqa: E402
-from hdjax._fit import DEFAULT_FREE, POSITIVE, experiment_residuals, fit_parameters, noise_levels  # noqa: E402
-from hdjax._paper_id import identify_paper  # noqa: E402
+from hdjax import (  # noqa: E402
+    DEFAULT_FREE,
+    POSITIVE,
+    Experiment,
+    experiment_residuals,
+    fit_parameters,
+    identify_paper,
+    load_dataset,
+    noise_levels,
+)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # CVODES options of the CasADi column besides the tolerances (see the module docstring)

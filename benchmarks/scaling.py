@@ -8,7 +8,7 @@ allocations). Per configuration it prints:
 
 - `compile_s`: `jax.jit(jax.jacfwd(residuals)).lower(...).compile()` wall time (the residual and
   its forward-mode Jacobian through the Rodas3 plant, over the experiments as the fit evaluates them:
-  `hdjax._sharding.for_each_experiment`, i.e. `lax.map` on the CPU, `vmap` on accelerators);
+  `hdjax.for_each_experiment`, i.e. `lax.map` on the CPU, `vmap` on accelerators);
 - `residual_s`, `jacobian_s`: one compiled evaluation of the noise-weighted residuals of all
   experiments and of their 9-column Jacobian (median of 3);
 - `fit_s`: `fit_parameters(..., max_steps=K)` wall time including its own compilation, and the
@@ -47,11 +47,18 @@ def one(n_exp: int, n_samples: int, max_steps: int) -> dict:
     import numpy as np
 
     import hdjax
-    from hdjax._data import load_dataset
-    from hdjax._experiment import Experiment
-    from hdjax._fit import DEFAULT_FREE, experiment_residuals, fit_parameters, make_parameter_map, noise_levels
-    from hdjax._paper_id import identify_paper
-    from hdjax._sharding import experiment_batching, for_each_experiment
+    from hdjax import (
+        DEFAULT_FREE,
+        Experiment,
+        experiment_batching,
+        experiment_residuals,
+        fit_parameters,
+        for_each_experiment,
+        identify_paper,
+        load_dataset,
+        make_parameter_map,
+        noise_levels,
+    )
 
     ds = load_dataset(ROOT / "data" / "hd2")
     dyn = ds.dynamic_indices()

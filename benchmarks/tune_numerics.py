@@ -17,7 +17,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 from hdjax import Plant, Smoothing, TorqueController, TorqueGains, closed_loop, doublet_reference, step_reference
-from hdjax._rig import station_hd2
+from hdjax.rig import station_hd2
 
 
 def main():

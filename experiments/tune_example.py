@@ -7,7 +7,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from hdjax import Plant, Smoothing, TorqueController, TorqueGains, closed_loop, step_reference, tracking_cost
-from hdjax._rig import station_hd1
+from hdjax.rig import station_hd1
 
 st = station_hd1()
 plant = Plant(st.truth, st.drive)

@@ -26,7 +26,17 @@ from ._experiment import (
     stack_experiments as stack_experiments,
     unstack_experiments as unstack_experiments,
 )
-from ._fit import fit_parameters as fit_parameters, noise_levels as noise_levels
+from ._fit import (
+    DEFAULT_FREE as DEFAULT_FREE,
+    POSITIVE as POSITIVE,
+    ParameterMap as ParameterMap,
+    experiment_residuals as experiment_residuals,
+    fit_noise_levels as fit_noise_levels,
+    fit_parameters as fit_parameters,
+    fit_per_experiment as fit_per_experiment,
+    make_parameter_map as make_parameter_map,
+    noise_levels as noise_levels,
+)
 from ._friction import (
     FrictionParameters as FrictionParameters,
     FrictionStructure as FrictionStructure,
@@ -53,6 +63,7 @@ from ._plant import (
     simulate as simulate,
     simulate_batch as simulate_batch,
 )
+from ._sharding import experiment_batching as experiment_batching, for_each_experiment as for_each_experiment
 from ._solver import Rodas3 as Rodas3
 from ._stepper import VelocityImplicit as VelocityImplicit
 
