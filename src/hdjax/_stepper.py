@@ -74,6 +74,11 @@ class VelocityImplicit(eqx.Module):
     corrector: bool = eqx.field(static=True, default=True)
 
 
+#: A step's root counts as converged when the residual of its equation is at most this fraction of
+#: the largest torque in it (`Trajectory.success`).
+ROOT_RTOL = 1e-7
+
+
 def _safe_abs_pow(x, p):
     """|x|**p with finite derivatives in x and p at x = 0 (value 0 there, for p > 0)."""
     ax = jnp.abs(x)
@@ -225,7 +230,7 @@ def _solve_step(P, s_guess, iterations):
     g_slip = P["A"] * (wm1 - P["wm_hist"]) + Tbar / P["N"] - P["drive"] + _branch_friction(wm1, sign, Pb)
     resid = jnp.where(stuck, P["A"] * wm1, g_slip)
     scale = P["A"] * jnp.abs(P["wm_hist"]) + jnp.abs(P["drive"]) + jnp.abs(Tbar) / P["N"] + P["Tcp"] + P["Tcn"] + 1e-12
-    converged = jnp.abs(resid) <= 1e-7 * scale
+    converged = jnp.abs(resid) <= ROOT_RTOL * scale
     return s, out, stuck, converged
 
 
