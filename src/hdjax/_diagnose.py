@@ -244,11 +244,20 @@ class _Problem(eqx.Module):
 
 
 def _solve_normal(JtJ: np.ndarray, Jtr: np.ndarray) -> np.ndarray:
-    """Gauss–Newton step −(JᵀJ + εI)⁻¹Jᵀr, ε = 1e-9 × the mean diagonal (guards rank loss)."""
+    """Gauss–Newton step −(JᵀJ + εI)⁻¹Jᵀr, ε = 1e-9 × the mean diagonal (guards rank loss). Columns
+    without information (a zero diagonal: the residual does not depend on them, e.g. where every
+    simulation failed and the residual is the constant failure value) get a zero step."""
     if not len(Jtr):
         return np.zeros(0)
-    JtJ = JtJ + 1e-9 * np.trace(JtJ) / len(Jtr) * np.eye(len(Jtr))
-    return -np.linalg.solve(JtJ, Jtr)
+    d = np.diag(JtJ).copy()
+    live = d > 0
+    out = np.zeros(len(Jtr))
+    if not live.any():
+        return out
+    A = JtJ[np.ix_(live, live)]
+    A = A + 1e-9 * np.trace(A) / int(live.sum()) * np.eye(int(live.sum()))
+    out[live] = -np.linalg.solve(A, Jtr[live])
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -413,6 +422,11 @@ def diagnose(
     t1 = time.perf_counter()
     traj = prob.trajectories(jnp.asarray(np.tile(z_cur, (n_exp, 1))), p_base, batch)
     timing["compile_and_base_simulation"] = time.perf_counter() - t1
+    failed = np.where(~np.asarray(traj.success))[0]
+    if failed.size:
+        # their residuals are the constant failure value of `experiment_residuals`: no information
+        log(f"diagnose: WARNING: the base-model simulation failed on experiment(s) {failed.tolist()} "
+            f"({type(simulator.solver).__name__}); they carry no information in this diagnosis")
     evidence, orders = _evidence(batch, traj, m, modes, sigma, p_base, drive)
     orders_of = _orders_per_candidate(orders, evidence)
     # A periodic effect is screened only at the orders its evidence proposes, and not at all when no
