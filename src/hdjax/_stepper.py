@@ -27,9 +27,9 @@ $s^*$ with $\omega_{m,n+1}(s^*) = 0$ solves a second monotone scalar equation (c
 output locked); the motor sticks when the friction needed to hold it lies inside
 $[-(T_{sn}+T_{ssn1}),\; T_{sp}+T_{ssp1}]$, otherwise the root lies on the branch the net torque
 points to. Each root is found inside an analytic bracket (from the inertia term alone) by Newton's
-method safeguarded by bisection, a fixed number of iterations (`iterations`), warm-started from
-the previous step: the cost of a step does not depend on the data, so `vmap`ped experiments run
-without lock-step waiting.
+method safeguarded by bisection, warm-started from the previous step, for at most `iterations`
+iterations (fewer once the iterate stops moving): the cost of a step is bounded whatever the data,
+so `vmap`ped experiments wait at most that long for each other (no adaptive step count to follow).
 
 **Stribeck.** With $T_{ss1} > 0$ friction falls with speed (locally non-monotone): $G$ could have
 several roots once its inertia term $A = J_{eff}/(\beta h)$ no longer exceeds the steepest fall,
@@ -65,12 +65,13 @@ class VelocityImplicit(eqx.Module):
     **Arguments:**
 
     - `substeps`: steps per sample interval (the step is the sample period / `substeps`).
-    - `iterations`: safeguarded Newton iterations per scalar root (fixed; the step's cost).
+    - `iterations`: at most this many safeguarded Newton iterations per scalar root (the step's
+      largest cost; the iteration stops earlier once it no longer moves).
     - `corrector`: solve each stage again with the explicit terms at the first pass's stage end.
     """
 
     substeps: int = eqx.field(static=True, default=1)
-    iterations: int = eqx.field(static=True, default=12)
+    iterations: int = eqx.field(static=True, default=48)
     corrector: bool = eqx.field(static=True, default=True)
 
 
@@ -159,19 +160,35 @@ def _G_branch(s, P):
 
 def _newton(fn, lo, hi, x0, P, iterations):
     """Root of the increasing scalar function fn(·, P) in [lo, hi]: Newton's method, a bisection
-    step whenever Newton would leave the bracket, `iterations` times (fixed cost)."""
-    def body(_, c):
-        x, lo, hi = c
+    step whenever Newton would leave the bracket; at most `iterations` iterations, fewer once the
+    iterate stops moving (a step below `_X_RTOL` of the bracket's scale, or g = 0). Under `vmap`
+    the loop runs until every lane has stopped, so the cost per step is bounded by `iterations`
+    and is the same for every lane."""
+    x_scale = jnp.maximum(jnp.abs(lo), jnp.abs(hi))
+
+    def body(c):
+        k, x, lo, hi, _ = c
         g, dg = jax.jvp(lambda s: fn(s, P), (x,), (jnp.ones_like(x),))
         lo = jnp.where(g < 0, x, lo)
         hi = jnp.where(g > 0, x, hi)
         xn = x - g / dg
         ok = (xn >= lo) & (xn <= hi) & jnp.isfinite(xn)
-        x = jnp.where(g == 0, x, jnp.where(ok, xn, 0.5 * (lo + hi)))
-        return x, lo, hi
+        x_new = jnp.where(g == 0, x, jnp.where(ok, xn, 0.5 * (lo + hi)))
+        moving = jnp.abs(x_new - x) > _X_RTOL * x_scale
+        return k + 1, x_new, lo, hi, moving
 
-    x, _, _ = jax.lax.fori_loop(0, iterations, body, (jnp.clip(x0, lo, hi), lo, hi))
+    def cond(c):
+        k, *_, moving = c
+        return (k < iterations) & moving
+
+    x0 = jnp.clip(x0, lo, hi)
+    _, x, _, _, _ = jax.lax.while_loop(cond, body, (0, x0, lo, hi, jnp.ones_like(x0, dtype=bool)))
     return x
+
+
+#: Newton stops once its step is below this fraction of the bracket's scale (Newton converges
+#: quadratically: the next step would be far below round-off).
+_X_RTOL = 1e-13
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 5))
