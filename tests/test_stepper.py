@@ -90,3 +90,18 @@ def test_vmap_equals_one_at_a_time():
         one = hdjax.simulate(p, drive, e, simulator=sim)
         np.testing.assert_allclose(np.asarray(batch.torque[k]), np.asarray(one.torque), rtol=1e-9, atol=1e-9)
     assert bool(jnp.all(batch.success))
+
+
+def test_every_root_converges_with_the_diagnosis_terms_switched_on():
+    """The diagnosis simulates every candidate term at its start value. Two make the step equation
+    hard: the Dahl state with a small σ (a steep exponential in the torsion increment) and the creep
+    ramp of `low_speed_friction` on HD2's parameters, where T_sn + T_ssn1 < 0 (a negative breakaway
+    made the ramped term fall with speed). Every root must still converge (`success`)."""
+    p, drive = hd2()
+    assert float(p.Tsn + p.Tssn1) < 0.0
+    for mode, amp in [("constrained", 0.15), ("constrained", 1.0), ("free", 0.3)]:
+        exp = sine_experiment(mode, amplitude=amp, duration=0.5)
+        for name in ("rate_independent_hysteresis", "low_speed_friction"):
+            tr = _sim(p, drive, exp, 4, effects=hdjax.Effects(active=frozenset([name]), sigma=2e-5))
+            assert bool(tr.success), (mode, amp, name)
+            assert np.all(np.isfinite(np.asarray(tr.torque))), (mode, amp, name)

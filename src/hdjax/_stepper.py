@@ -139,7 +139,12 @@ def _branch_friction(w, sign, P):
     g = jnp.where(implicit, g_implicit, P["g_lag"])
     vc = P["vc"]
     ramp = jnp.where(vc > 0, jnp.minimum(jnp.abs(w) / jnp.where(vc > 0, vc, 1.0), 1.0), 1.0)
-    return P["visc"] * Tv * w + sign * ramp * (Tc + coef * g)
+    # under the creep ramp a negative breakaway (T_c + T_ss1 < 0, as HD2's negative direction) would
+    # make the ramped term fall with speed and the step equation non-monotone: its magnitude is
+    # clamped at zero there (friction never drives the motor)
+    mag = Tc + coef * g
+    mag = jnp.where(vc > 0, jnp.maximum(mag, 0.0), mag)
+    return P["visc"] * Tv * w + sign * ramp * mag
 
 
 def _G_nofriction(s, P):
