@@ -105,7 +105,6 @@ import hdjax  # noqa: E402
 from hdjax import (  # noqa: E402
     DEFAULT_FREE,
     POSITIVE,
-    Experiment,
     experiment_residuals,
     fit_parameters,
     identify_paper,
@@ -224,11 +223,6 @@ def residuals_scipy(theta, p0, drive, exps, sigma, method, rtol=1e-6):
 # ---------------------------------------------------------------------------------------------
 
 
-def _trim(e: Experiment, n: int) -> Experiment:
-    return Experiment(**{k: (getattr(e, k)[:n] if getattr(e, k).ndim == 1 else getattr(e, k))
-                         for k in Experiment.__dataclass_fields__})
-
-
 def _check_casadi_jacobian(build, J, theta0):
     """Print the CasADi Jacobian (at the benchmark's ODE tolerance) against central differences of
     the CasADi residual at the start point. The differenced residual is built with rtol 1e-10: at
@@ -281,7 +275,7 @@ def main() -> None:
     free = [i for i in dyn if ds.modes[i] == "free"]
     pick = lambda lst, k: [lst[int(round(j))] for j in np.linspace(0, len(lst) - 1, k)] if k else []  # noqa: E731
     sel = pick(cons, args.constrained) + pick(free, args.free)
-    exps = [_trim(ds.experiments[i], args.samples) for i in sel]
+    exps = [ds.experiments[i].first(args.samples) for i in sel]
     batch = hdjax.stack_experiments(exps)
     p0 = identify_paper([ds.experiments[i] for i in dyn], ds.drive).parameters()
     sigma = noise_levels(batch)

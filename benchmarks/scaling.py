@@ -49,7 +49,6 @@ def one(n_exp: int, n_samples: int, max_steps: int) -> dict:
     import hdjax
     from hdjax import (
         DEFAULT_FREE,
-        Experiment,
         experiment_batching,
         experiment_residuals,
         fit_parameters,
@@ -67,12 +66,8 @@ def one(n_exp: int, n_samples: int, max_steps: int) -> dict:
     order = [x for pair in zip(cons, free) for x in pair] + free[len(cons):]
     sel = [order[k % len(order)] for k in range(n_exp)]
 
-    def trim(e):
-        return Experiment(**{k: (getattr(e, k)[:n_samples] if getattr(e, k).ndim == 1 else getattr(e, k))
-                             for k in Experiment.__dataclass_fields__})
-
     p0 = identify_paper([ds.experiments[i] for i in dyn], ds.drive).parameters()
-    batch = hdjax.stack_experiments([trim(ds.experiments[i]) for i in sel])
+    batch = hdjax.stack_experiments([ds.experiments[i].first(n_samples) for i in sel])
     sim = hdjax.Simulator(rtol=1e-6, atol=1e-8)
     sigma = noise_levels(batch)
     pmap = make_parameter_map(p0, DEFAULT_FREE)

@@ -42,11 +42,6 @@ VARIED = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn")
 JAC_FREE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")
 
 
-def _trim(e: hdjax.Experiment, n: int) -> hdjax.Experiment:
-    return hdjax.Experiment(**{k: (getattr(e, k)[:n] if getattr(e, k).ndim == 1 else getattr(e, k))
-                               for k in hdjax.Experiment.__dataclass_fields__})
-
-
 def _timed(f, *args, repeat: int = 3) -> tuple[float, float]:
     """(compile-and-first-run seconds, best of `repeat` later runs)."""
     t0 = time.perf_counter()
@@ -75,7 +70,7 @@ def main() -> int:
           f"{os.cpu_count()} CPUs, jax {jax.__version__}, {platform.machine()}", flush=True)
     ds = hdjax.load_dataset(ROOT / "data" / "hd2")
     idx = ds.dynamic_indices()
-    records = [_trim(ds.experiments[i], args.samples) for i in idx]
+    records = [ds.experiments[i].first(args.samples) for i in idx]
     p = hdjax.Parameters.from_dict(ds.truth["parameters"])
     drive = ds.drive
     vi = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=args.substeps))

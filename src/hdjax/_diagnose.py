@@ -249,14 +249,13 @@ def _solve_normal(JtJ: np.ndarray, Jtr: np.ndarray) -> np.ndarray:
     simulation failed and the residual is the constant failure value) get a zero step."""
     if not len(Jtr):
         return np.zeros(0)
-    d = np.diag(JtJ).copy()
-    live = d > 0
+    live = np.diag(JtJ) > 0
     out = np.zeros(len(Jtr))
     if not live.any():
         return out
     A = JtJ[np.ix_(live, live)]
-    A = A + 1e-9 * np.trace(A) / int(live.sum()) * np.eye(int(live.sum()))
-    out[live] = -np.linalg.solve(A, Jtr[live])
+    n = A.shape[0]
+    out[live] = -np.linalg.solve(A + 1e-9 * np.trace(A) / n * np.eye(n), Jtr[live])
     return out
 
 

@@ -1,6 +1,7 @@
 """Measured experiments as array PyTrees, one per record; batches are padded and masked."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
@@ -42,6 +43,11 @@ class Experiment(eqx.Module):
     @property
     def n_samples(self) -> int:
         return int(np.sum(np.asarray(self.mask)))
+
+    def first(self, n: int) -> "Experiment":
+        """The record cut to its first `n` samples (the per-sample arrays; scalars unchanged)."""
+        return Experiment(**{k: (v[:n] if v.ndim == 1 else v) for k, v in
+                             ((k, getattr(self, k)) for k in Experiment.__dataclass_fields__)})
 
 
 def make_experiment(
@@ -126,11 +132,6 @@ def unstack_experiments(batch: Experiment) -> list[Experiment]:
     """Inverse of `stack_experiments`, trimming the padding."""
     out = []
     for i in range(batch.time.shape[0]):
-        m = np.asarray(batch.mask[i])
-        n = int(m.sum())
-        kw = {}
-        for name in Experiment.__dataclass_fields__:
-            v = getattr(batch, name)[i]
-            kw[name] = v[:n] if v.ndim == 1 else v
-        out.append(Experiment(**kw))
+        one = jax.tree.map(lambda v: v[i], batch)
+        out.append(one.first(int(np.asarray(batch.mask[i]).sum())))
     return out

@@ -167,8 +167,7 @@ def _newton(fn, lo, hi, x0, P, iterations):
     """Root of the increasing scalar function fn(·, P) in [lo, hi]: Newton's method, a bisection
     step whenever Newton would leave the bracket; at most `iterations` iterations, fewer once the
     iterate stops moving (a step below `_X_RTOL` of the bracket's scale, or g = 0). Under `vmap`
-    the loop runs until every lane has stopped, so the cost per step is bounded by `iterations`
-    and is the same for every lane."""
+    the loop runs until every lane has stopped: every lane pays the same, at most `iterations`."""
     x_scale = jnp.maximum(jnp.abs(lo), jnp.abs(hi))
 
     def body(c):
