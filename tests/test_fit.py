@@ -138,3 +138,27 @@ def test_stall_stop_ends_a_jittery_fit():
     assert jnp.allclose(sol.value, exact, atol=2e-3) and jnp.allclose(only_stall.value, exact, atol=2e-3)
     r, J = _final_residual_and_jacobian(sol)
     assert jnp.allclose(r, fn(sol.value, None)) and jnp.allclose(J, A, atol=1e-2)
+
+
+def test_a_second_fit_of_the_same_shapes_reuses_the_compiled_program_and_gives_the_fresh_result(campaign):
+    """`fit_parameters` builds its compiled LM program once per (free parameters, numerics, LM
+    options); the start, the data and the noise levels are arguments. A second fit on other data
+    of the same shapes must reuse it and agree with a program built afresh (nothing of the first
+    fit is baked into the compiled code)."""
+    from hdjax._fit import _joint_fit_program
+
+    p, drive, exps, _ = campaign
+    first, second = hdjax.stack_experiments(exps[:3]), hdjax.stack_experiments(exps[3:])
+    start = identify_paper(exps, drive).parameters()
+    kw = dict(max_steps=2, sigma=np.array([0.1, 0.03, 1e-4]))
+    fit_parameters(start, drive, first, **kw)
+    before = _joint_fit_program.cache_info()
+    reused = fit_parameters(start, drive, second, **kw)
+    after = _joint_fit_program.cache_info()
+    assert (after.hits, after.misses) == (before.hits + 1, before.misses)
+    _joint_fit_program.cache_clear()
+    fresh = fit_parameters(start, drive, second, **kw)
+    assert _joint_fit_program.cache_info().misses == 1
+    for k in reused.free:
+        np.testing.assert_allclose(float(getattr(reused.params, k)), float(getattr(fresh.params, k)), rtol=1e-12)
+    assert reused.chi2_reduced == pytest.approx(fresh.chi2_reduced, rel=1e-12)

@@ -20,7 +20,9 @@ components {offset, constant velocity} of each experiment before weighting, so a
 error cannot dominate it; what remains (torsion and acceleration history) carries the information.
 """
 
+import contextlib
 import dataclasses
+import functools
 from collections.abc import Callable
 
 import equinox as eqx
@@ -423,35 +425,12 @@ def fit_parameters(
     mesh = experiment_mesh() if jax.device_count() > 1 else None
     if mesh is not None:
         batch, _ = shard_experiments(batch, mesh)
-
-    def residuals(theta, args):
-        p0_, drive_, batch_, sigma_ = args
-        p = pmap.to_params(theta, p0_)
-
-        def per_experiment(shared, b):
-            p_, d_, s_ = shared
-            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator), b,
-                                       fixed_cost=is_fixed_cost(simulator))
-
-        r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
-        return r.reshape(-1)
-
-    residuals_lm = _lm_objective(residuals)
     n_exp = int(batch.time.shape[0])
     with lm_progress(f"LM fit ({len(free)} parameters, {n_exp} experiments)", max_steps) as callback:
-        lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol, callback=callback)
-
-        # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which
-        # XLA would try to constant-fold)
-        @eqx.filter_jit
-        def run(theta0, args):
-            sol = optx.least_squares(residuals_lm, lm, theta0, args, max_steps=max_steps, throw=False)
-            r, J = _final_residual_and_jacobian(sol)
-            if mesh is not None:  # every process can read the result (multi-host)
-                r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
-            return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], r, J
-
-        theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (p0, drive, batch, sigma)))
+        run = _cached(_joint_fit_program, pmap.free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh,
+                      callback is not None)
+        with _relayed("lm", callback):
+            theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (pmap, p0, drive, batch, sigma)))
     stop = str(_stop_reason(result, reason))
     theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
     n_obs = int(np.sum(r != 0.0))
@@ -552,43 +531,21 @@ def fit_per_experiment(
         slot_index[e, : len(ks)] = ks
         slot_on[e, : len(ks)] = 1.0
 
-    def full_theta(z, theta0_, idx, on):
-        return theta0_.at[idx].add(on * z)
-
-    def residuals(z, args):
-        theta0_, p0_, drive_, exp, sigma_, idx, on = args
-        p = pmap.to_params(full_theta(z, theta0_, idx, on), p0_)
-        return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
-
-    residuals_lm = _lm_objective(residuals)
-    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)
-
-    def make_run(done):
-        @eqx.filter_jit
-        def run(z, theta0_, p0_, drive_, batch_, sigma_, idx, on):
-            def one(z_e, exp, idx_e, on_e):
-                args = (theta0_, p0_, drive_, exp, sigma_, idx_e, on_e)
-                sol = optx.least_squares(residuals_lm, lm, z_e, args, max_steps=max_steps, throw=False)
-                if done is not None:  # after this experiment's fit (its result is the argument)
-                    jax.debug.callback(done, sol.stats["num_steps"])
-                return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
-
-            return for_each_experiment(one, z, batch_, idx, on)
-
-        return run
-
     active = mask.any(axis=1)
     idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
     with count_progress("per-experiment LM fits", n_exp, unit="experiments") as done:
-        z_final, result, reason, steps, r = jax.block_until_ready(
-            make_run(done)(jnp.zeros((n_exp, n_slots)), theta0, p0, drive, batch, sigma, idx, on)
-        )
+        run = _cached(_per_experiment_fit_program, pmap.free, simulator, solver, max_steps, step_se_tol, cost_rtol,
+                      done is not None)
+        with _relayed("count", done):
+            z_final, result, reason, steps, r = jax.block_until_ready(
+                run(jnp.zeros((n_exp, n_slots)), (pmap, theta0, p0, drive, batch, sigma, idx, on))
+            )
     z_final, r, steps = np.asarray(z_final), np.asarray(r), np.asarray(steps)
     ok = (_stop_reason(result, reason) != "max_steps") & active
     rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
     values = np.full(mask.shape, np.nan)
     for e in np.flatnonzero(ok):
-        p = pmap.to_params(full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
+        p = pmap.to_params(_full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
         for k, name in enumerate(pmap.free):
             if mask[e, k]:
                 values[e, k] = float(getattr(p, name))
@@ -601,3 +558,113 @@ def fit_per_experiment(
         steps=steps,
         chi2_reduced=rss / dof,
     )
+
+
+# --- compiled fit programs, built once per problem structure -------------------------------------
+#
+# A fit program is one `eqx.filter_jit` function. Built inside `fit_parameters` it was a new Python
+# function at every call, so every call traced and compiled it again (about 20 s on this 2-core CPU
+# for the diagnosis's base fit, paid once per dataset). Built here, once per (free parameters,
+# numerics, LM options), with every value (parameter map, start, data, noise levels) an argument,
+# a second fit of the same shapes reuses the compiled program. Progress callbacks change from
+# call to call: the program calls a fixed relay (`_relay_lm`, `_relay_count`) that forwards to the
+# callback installed for the current call.
+
+_RELAY: dict[str, Callable | None] = {"lm": None, "count": None}
+
+
+def _relay_lm(*values):
+    if _RELAY["lm"] is not None:
+        _RELAY["lm"](*values)
+
+
+def _relay_count(*values):
+    if _RELAY["count"] is not None:
+        _RELAY["count"](*values)
+
+
+@contextlib.contextmanager
+def _relayed(kind: str, callback):
+    before = _RELAY[kind]
+    _RELAY[kind] = callback
+    try:
+        yield
+    finally:
+        _RELAY[kind] = before
+
+
+def _cached(build, *key):
+    """`build(*key)`, memoised on `key` (numerics and options); built afresh when a key is not
+    hashable (an option holding an array)."""
+    try:
+        hash(key)
+    except TypeError:
+        return build.__wrapped__(*key)
+    return build(*key)
+
+
+@functools.lru_cache(maxsize=32)
+def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh, progress):
+    """The compiled joint fit: `run(theta0, (pmap, p0, drive, batch, sigma))` → (θ, result, stop
+    rule, steps, residual, Jacobian at θ)."""
+
+    def residuals(theta, args):
+        pmap, p0_, drive_, batch_, sigma_ = args
+        p = pmap.to_params(theta, p0_)
+
+        def per_experiment(shared, b):
+            p_, d_, s_ = shared
+            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator), b,
+                                       fixed_cost=is_fixed_cost(simulator))
+
+        r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
+        return r.reshape(-1)
+
+    residuals_lm = _lm_objective(residuals)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol, callback=_relay_lm if progress else None)
+
+    # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which
+    # XLA would try to constant-fold)
+    @eqx.filter_jit
+    def run(theta0, args):
+        sol = optx.least_squares(residuals_lm, lm, theta0, args, max_steps=max_steps, throw=False)
+        r, J = _final_residual_and_jacobian(sol)
+        if mesh is not None:  # every process can read the result (multi-host)
+            r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
+        return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], r, J
+
+    return run
+
+
+def _full_theta(z, theta0, idx, on):
+    """θ of one per-experiment fit: θ0 with its slots `idx` (where `on`) moved by z."""
+    return theta0.at[idx].add(on * z)
+
+
+@functools.lru_cache(maxsize=32)
+def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, progress):
+    """The compiled per-experiment fits: `run(z0, (pmap, θ0, p0, drive, batch, sigma, idx, on))` →
+    per experiment (z, result, stop rule, steps, residual)."""
+
+    def residuals(z, args):
+        pmap, theta0_, p0_, drive_, exp, sigma_, idx, on = args
+        p = pmap.to_params(_full_theta(z, theta0_, idx, on), p0_)
+        return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
+
+    residuals_lm = _lm_objective(residuals)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)
+
+    @eqx.filter_jit
+    def run(z, args):
+        pmap, theta0_, p0_, drive_, batch_, sigma_, idx, on = args
+
+        def one(z_e, exp, idx_e, on_e):
+            sol = optx.least_squares(residuals_lm, lm, z_e, (pmap, theta0_, p0_, drive_, exp, sigma_, idx_e, on_e),
+                                     max_steps=max_steps, throw=False)
+            if progress:  # after this experiment's fit (its result is the argument)
+                jax.debug.callback(_relay_count, sol.stats["num_steps"])
+            return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
+
+        return for_each_experiment(one, z, batch_, idx, on)
+
+    return run
