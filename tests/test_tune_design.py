@@ -3,6 +3,7 @@ differences), closed-loop stability, the independent bench's closed loop, and th
 validation for a user's data (no bench)."""
 
 import pathlib
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -111,8 +112,8 @@ def test_bench_is_rebuilt_from_its_truth(tmp_path):
 
 
 def test_user_data_is_validated_on_the_identified_model_and_says_so(tmp_path, monkeypatch):
-    """A dataset without a truth.yaml from hdjax._bench (here the shipped HD1 data, written by
-    the older hdjax._rig): report and figure titles say 'identified model', never 'bench'. The
+    """A dataset without a truth.yaml from hdjax._bench (here the shipped HD1 records without their
+    truth file): report and figure titles say 'identified model', never 'bench'. The
     heavy numerics are replaced by stand-ins; only the wording path is exercised."""
     import matplotlib.figure
 
@@ -120,7 +121,16 @@ def test_user_data_is_validated_on_the_identified_model_and_says_so(tmp_path, mo
     from hdjax._control import LoopTrajectory, TuneResult
     from hdjax._data import load_dataset
 
-    ds = load_dataset(pathlib.Path(__file__).parents[1] / "data" / "hd1")
+    # a dataset without the bench's truth (the shipped ones come from the bench since 2026-11-26)
+    src = pathlib.Path(__file__).parents[1] / "data" / "hd1"
+    folder = tmp_path / "own-bench"
+    folder.mkdir()
+    for f in src.iterdir():
+        if f.name != "truth.yaml":
+            shutil.copy(f, folder / f.name)
+    meta = folder / "dataset.yaml"
+    meta.write_text(meta.read_text().replace("name: hd1-bench", "name: my-drive"))
+    ds = load_dataset(folder)
     assert _tune._bench_from_truth(ds) is None
 
     def fake_batch_cost(g, plants, R, **kw):
