@@ -169,6 +169,9 @@ def test_fit_cutoff_reaches_the_paper_identification_of_every_command(command, m
 
     monkeypatch.setattr(_paper_id, "identify_paper", spy)
     monkeypatch.setattr(_diagnose_report, "identify_paper", spy)
+    # from an empty folder: `tune` takes results/<dataset>/fit.json from the working directory when
+    # there is one (the README's first command writes it), and then runs no paper identification
+    monkeypatch.chdir(tmp_path)
     ds = load_dataset(_repo() / "data" / "hd2")
     config = {"fit": {"cutoff_hz": 30.0, "alpha": 0.6, "Tss2": 0.2}}
     run = _diagnose_report.run_diagnose if command == "diagnose" else _tune.run_tune
