@@ -25,9 +25,9 @@ import pathlib
 import time
 
 import numpy as np
-import yaml
 
-from hdjax._bench import make_dataset
+from hdjax import load_dataset
+from hdjax.bench import make_dataset
 
 SEEDS = {"hd1": 1001, "hd2": 2002}
 CAMPAIGN = {"n_locked": 20, "n_free": 30, "duration": 1.5}
@@ -35,13 +35,12 @@ RIPPLE = {"torque_sensor_ripple": {"snr": 3.0, "orders": [2], "channels": ["torq
 
 
 def _summary(folder: pathlib.Path) -> None:
-    """Measured ranges of the campaign (what a campaign has to cover)."""
-    ds = yaml.safe_load((folder / "dataset.yaml").read_text())
+    """Measured ranges of the campaign as written (read back through `load_dataset`)."""
+    ds = load_dataset(folder)
     peak_T, peak_w = {"constrained": [], "free": []}, {"constrained": [], "free": []}
-    for e in ds["experiments"]:
-        d = np.genfromtxt(folder / e["file"], delimiter=",", names=True)
-        peak_T[e["mode"]].append(np.max(np.abs(d["torque"])))
-        peak_w[e["mode"]].append(np.max(np.abs(d["motor_velocity"])))
+    for e, mode in zip(ds.experiments, ds.modes):
+        peak_T[mode].append(float(np.max(np.abs(np.asarray(e.torque)))))
+        peak_w[mode].append(float(np.max(np.abs(np.asarray(e.motor_velocity)))))
     for mode in ("constrained", "free"):
         print(f"  {mode}: {len(peak_T[mode])} records, peak |T| {min(peak_T[mode]):.1f}..{max(peak_T[mode]):.1f} N·m, "
               f"peak |wm| {min(peak_w[mode]):.2f}..{max(peak_w[mode]):.1f} rad/s")
@@ -58,9 +57,7 @@ def main() -> None:
         folder = args.out / key
         for old in list(folder.glob("*.csv")) + list(folder.glob("*.yaml")):  # no stale record of an earlier campaign
             old.unlink()
-        make_dataset(folder, drive=key, seed=SEEDS[key], effects=effects, **CAMPAIGN)
-        meta = folder / "dataset.yaml"  # the name reports and logs show
-        meta.write_text(meta.read_text().replace(f"name: bench-{key}-seed{SEEDS[key]}\n", f"name: {key}-bench\n", 1))
+        make_dataset(folder, drive=key, seed=SEEDS[key], effects=effects, name=f"{key}-bench", **CAMPAIGN)
         size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
         print(f"{key}: -> {folder} ({size / 1e6:.2f} MB) in {time.perf_counter() - t0:.1f} s")
         _summary(folder)

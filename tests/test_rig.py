@@ -1,5 +1,4 @@
-"""The virtual test rig: sensor models, campaign design, effect hiding and the shipped datasets."""
-
+"""The virtual test rig: sensor models, campaign design and effect hiding (the shipped datasets come from the independent bench: `test_bench.py`)."""
 
 import numpy as np
 import pytest

@@ -1069,6 +1069,7 @@ def make_dataset(
     noise: str = "per_sensor",
     low_speed: str = "stick_slip",
     fine_rate: float = 20000.0,
+    name: str | None = None,
 ) -> dict:
     """Simulate a bench session and write it as a SPEC §2 dataset folder.
 
@@ -1088,6 +1089,7 @@ def make_dataset(
       or "none".
     - `low_speed`: "stick_slip" (exact sticking, breakaway) or "lugre".
     - `fine_rate`: integrator step rate (Hz).
+    - `name`: the dataset's name in `dataset.yaml` (default `bench-<drive>-seed<seed>`).
 
     **Returns:** the truth mapping (also written to `truth.yaml`).
     """
@@ -1104,7 +1106,7 @@ def make_dataset(
         _atomic_write(folder / r["file"], buf.getvalue())
     st = STATIONS[drive]
     doc = {
-        "name": f"bench-{drive}-seed{seed}",
+        "name": name or f"bench-{drive}-seed{seed}",
         "drive": {"gear_ratio": st.gear_ratio, "torque_constant": st.torque_constant, "load_inertia": st.load_inertia},
         "experiments": [{"file": r["file"], "mode": r["mode"], "start_time": r["start_time"]} for r in records],
     }
