@@ -95,3 +95,26 @@ def test_sharded_fit_matches_one_device(runs):
     assert abs(two["chi2"] / one["chi2"] - 1) < 1e-8
     # the fit moved away from the perturbed start (the comparison is not of two untouched starts)
     assert abs(one["params"]["K1"] / (1.2 * 104.2 * 180 / np.pi) - 1) > 0.05
+
+
+def test_use_host_devices_sets_the_count_before_jax_starts_and_import_starts_nothing():
+    """`import hdjax` must not start JAX's backends (else the commands could not spread experiments
+    over the cores); `use_host_devices(3)` then gives three CPU devices, and a second call (flag
+    already set) changes nothing."""
+    script = (
+        "import hdjax, hdjax.fit, hdjax.diagnose\n"
+        "from jax._src import xla_bridge\n"
+        "started = xla_bridge.backends_are_initialized()\n"
+        "from hdjax._sharding import use_host_devices\n"
+        "n = use_host_devices(3)\n"
+        "again = use_host_devices(5)\n"
+        "import jax\n"
+        "print(started, n, again, jax.device_count())\n"
+    )
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f)
+    env["JAX_PLATFORMS"] = "cpu"
+    env.pop("HDJAX_HOST_DEVICES", None)
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["False", "3", "None", "3"], out.stdout

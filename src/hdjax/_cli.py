@@ -151,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
 
     import jax
 
+    from ._sharding import use_host_devices
+
+    use_host_devices()  # every CPU core simulates its share of the experiments
     jax.config.update("jax_enable_x64", True)
     from ._config import ConfigError, validate_config
     from ._data import DatasetError, resolve_target

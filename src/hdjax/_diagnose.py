@@ -87,6 +87,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 from scipy import stats
 from scipy.signal import lfilter
 
@@ -95,7 +96,7 @@ from ._experiment import Experiment, stack_experiments
 from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map, process_noise as _process_noise, white_noise_level
 from ._model import Drive, Parameters
 from ._plant import Simulator, is_fixed_cost, simulate
-from ._sharding import for_each_experiment
+from ._sharding import experiment_mesh, for_each_experiment, map_experiments, pad_experiments
 
 #: A finding may make one kind of test (locked or free) worse by at most this share of the held-out
 #: Δχ² it gains on the other (and at most the chance level when that is larger). A true order-2
@@ -204,7 +205,12 @@ class Diagnosis:
 class _Problem(eqx.Module):
     """The residual of every experiment as a function of one flat vector z = [base θ, effect values]:
     `simulate(zs)` with one z per experiment (fold fits are held out experiment by experiment),
-    `jacobian(z, tangents)` for one shared z. Data enter as arguments, so each compiles once."""
+    `jacobian(z, tangents)` for one shared z. Data enter as arguments, so each compiles once.
+
+    With several devices (`jax.device_count() > 1`, e.g. `XLA_FLAGS=--xla_force_host_platform_device_count=2`
+    on a 2-core CPU) the experiments are spread over them (`mesh`, `hdjax._sharding`): the batch is
+    padded with dummy experiments to a multiple of the device count and each device simulates its
+    share; the dummies are dropped from every output."""
 
     pmap: ParameterMap
     cols: tuple = eqx.field(static=True)  # structure only: (effect, field, index) per column
@@ -213,6 +219,7 @@ class _Problem(eqx.Module):
     effects: Effects
     drive: Drive
     simulator: Simulator
+    mesh: Mesh | None = eqx.field(static=True, default=None)
 
     def _one(self, z, p_ref, exp, sigma):
         n = self.pmap.scale.shape[0]
@@ -226,19 +233,49 @@ class _Problem(eqx.Module):
         e = _apply(self.effects, list(self.cols), z[n:], self.scales, self.starts)
         return simulate(p, self.drive, exp, effects=e, simulator=self.simulator)
 
-    @eqx.filter_jit
+    def _each(self, fn, shared, batched):
+        """`fn(shared, *slices)` for every experiment of the tuple `batched`, on every device."""
+        fixed = is_fixed_cost(self.simulator)
+        per_device = lambda sh, b: for_each_experiment(lambda *xs: fn(sh, *xs), *b, fixed_cost=fixed)
+        return map_experiments(per_device, self.mesh)(shared, batched)
+
+    def _pad(self, zs, batch, sigma=None):
+        """Pad the experiment axis to a multiple of the device count (dummy experiments: masked,
+        at rest, with the first experiment's z). Returns (zs, batch, sigma, number of real ones)."""
+        if self.mesh is None:
+            return zs, batch, sigma, None
+        padded, n = pad_experiments(batch, self.mesh.size)
+        extra = padded.time.shape[0] - n
+        if extra:
+            zs = jnp.concatenate([zs, jnp.broadcast_to(zs[:1], (extra,) + zs.shape[1:])])
+            if sigma is not None:
+                sigma = jnp.concatenate([sigma, jnp.ones((extra,) + sigma.shape[1:], sigma.dtype)])
+        return zs, padded, sigma, n
+
     def simulate(self, zs, p_ref, batch, sigma):
-        return for_each_experiment(lambda z, e, s: self._one(z, p_ref, e, s), zs, batch, sigma,
-                                   fixed_cost=is_fixed_cost(self.simulator))
+        zs, batch, sigma, n = self._pad(zs, batch, sigma)
+        return self._simulate(zs, p_ref, batch, sigma)[:n]
 
-    @eqx.filter_jit
     def trajectories(self, zs, p_ref, batch):
-        return for_each_experiment(lambda z, e: self._traj(z, p_ref, e), zs, batch, fixed_cost=is_fixed_cost(self.simulator))
+        zs, batch, _, n = self._pad(zs, batch)
+        return jax.tree.map(lambda x: x[:n], self._trajectories(zs, p_ref, batch))
+
+    def jacobian(self, z, tangents, p_ref, batch, sigma):
+        _, batch, sigma, n = self._pad(jnp.asarray(z)[None], batch, sigma)
+        r, J = self._jacobian(z, tangents, p_ref, batch, sigma)
+        return r[:n], J[:n]
 
     @eqx.filter_jit
-    def jacobian(self, z, tangents, p_ref, batch, sigma):
-        f = lambda z_: for_each_experiment(lambda e, s: self._one(z_, p_ref, e, s), batch, sigma,
-                                           fixed_cost=is_fixed_cost(self.simulator))
+    def _simulate(self, zs, p_ref, batch, sigma):
+        return self._each(lambda p, z, e, s: self._one(z, p, e, s), p_ref, (zs, batch, sigma))
+
+    @eqx.filter_jit
+    def _trajectories(self, zs, p_ref, batch):
+        return self._each(lambda p, z, e: self._traj(z, p, e), p_ref, (zs, batch))
+
+    @eqx.filter_jit
+    def _jacobian(self, z, tangents, p_ref, batch, sigma):
+        f = lambda z_: self._each(lambda sh, e, s: self._one(sh[0], sh[1], e, s), (z_, p_ref), (batch, sigma))
         r, J = jax.vmap(lambda v: jax.jvp(f, (z,), (v,)), out_axes=(None, -1))(tangents)
         return r, J
 
@@ -411,7 +448,7 @@ def diagnose(
     prob = _Problem(pmap=pmap, cols=tuple(dataclasses.replace(c, scale=1.0, start=0.0) for c in cols),
                     scales=jnp.asarray([c.scale for c in cols]), starts=jnp.asarray([c.start for c in cols]),
                     effects=_fixed_effect_settings(ctx, list(candidates) + model_form), drive=drive,
-                    simulator=simulator)
+                    simulator=simulator, mesh=experiment_mesh() if jax.device_count() > 1 else None)
     # Jacobians only set Gauss–Newton directions (every accepted step and held-out figure is a
     # simulation at `simulator`'s tolerance), so they are computed at a looser tolerance
     jac_prob = eqx.tree_at(lambda q: q.simulator, prob, loose)

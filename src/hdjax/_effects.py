@@ -32,7 +32,9 @@ physics of the drive but of the bench and of the paper model's fixed choices:
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._smooth import smooth_sign
@@ -60,11 +62,15 @@ SCALAR_FIELDS = {**SCALAR, **MODEL_FORM}
 
 
 def _zeros():
-    return jnp.zeros(MAX_ORDER)
+    return np.zeros(MAX_ORDER)
 
 
 def _as_float(x):
-    return jnp.asarray(x, dtype=float)
+    # numbers become numpy arrays, so that building an `Effects` (a default argument at import)
+    # does not start JAX's backends: `hdjax._sharding.use_host_devices` must run before that
+    if isinstance(x, jax.Array):
+        return jnp.asarray(x, dtype=float)
+    return np.asarray(x, dtype=np.float64 if jax.config.jax_enable_x64 else np.float32)
 
 
 class Effects(eqx.Module):

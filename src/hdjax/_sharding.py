@@ -46,6 +46,45 @@ from ._experiment import Experiment
 AXIS = "exp"
 
 
+#: Environment variable: how many CPU host devices `use_host_devices` asks XLA for (default: the
+#: cores this process may run on; 1 switches the spreading off).
+HOST_DEVICES_ENV = "HDJAX_HOST_DEVICES"
+
+
+def use_host_devices(n: int | None = None) -> int | None:
+    """Let JAX see the CPU as `n` host devices (default: `$HDJAX_HOST_DEVICES`, else the cores this
+    process may run on), so that `fit_parameters`, `simulate_batch` and `diagnose` spread their
+    experiments over all cores. On the CPU an experiment's ODE solve runs on one core (`lax.map`,
+    see `experiment_batching`), so one device leaves the other cores idle.
+
+    It only sets `XLA_FLAGS=--xla_force_host_platform_device_count=n`, which XLA reads when its
+    backends start: call it before the first JAX computation. It does nothing where the flag is
+    already set, where the backends have started, or for `n` ≤ 1. The commands (`hdjax fit`, ...)
+    and the test suite call it; a library import never does. Returns the count set, or None.
+
+    Measured on the 2-core machine (`benchmarks/RESULTS.md`, 2026-11-26): a 16-record diagnosis
+    363 s → 241 s with the same result; accelerators are not affected (their devices are used)."""
+    from jax._src import xla_bridge
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" in flags or xla_bridge.backends_are_initialized():
+        return None
+    if n is None:
+        env = os.environ.get(HOST_DEVICES_ENV, "").strip()
+        if env:
+            try:
+                n = int(env)
+            except ValueError:
+                raise ValueError(f"{HOST_DEVICES_ENV}={env!r}: give a whole number of CPU devices (1 switches spreading off).") from None
+        else:
+            n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if n <= 1:
+        return None
+    # first: XLA stops reading flags at a malformed one
+    os.environ["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={int(n)} {flags}".strip()
+    return int(n)
+
+
 def experiment_mesh(devices=None) -> Mesh:
     """A one-dimensional `Mesh` with axis name `"exp"` over `devices` (default: `jax.devices()`,
     all devices of all processes)."""
