@@ -15,6 +15,10 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from hdjax import use_host_devices  # noqa: E402
+
+use_host_devices()  # every CPU core simulates its share of the experiments (HDJAX_HOST_DEVICES=1: one)
+
 import tempfile  # noqa: E402
 
 from hdjax import diagnose_effects as diagnose, identify_paper, load_dataset  # noqa: E402

@@ -24,6 +24,10 @@ import yaml
 
 jax.config.update("jax_enable_x64", True)
 
+from hdjax import use_host_devices  # noqa: E402
+
+use_host_devices()  # every CPU core simulates its share of the experiments (HDJAX_HOST_DEVICES=1: one)
+
 import numpy as np  # noqa: E402
 
 from hdjax import diagnose_effects as diagnose, identify_paper, load_dataset  # noqa: E402

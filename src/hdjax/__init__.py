@@ -63,7 +63,11 @@ from ._plant import (
     simulate as simulate,
     simulate_batch as simulate_batch,
 )
-from ._sharding import experiment_batching as experiment_batching, for_each_experiment as for_each_experiment
+from ._sharding import (
+    experiment_batching as experiment_batching,
+    for_each_experiment as for_each_experiment,
+    use_host_devices as use_host_devices,
+)
 from ._solver import Rodas3 as Rodas3
 from ._stepper import VelocityImplicit as VelocityImplicit
 

@@ -139,8 +139,8 @@ class Effects(eqx.Module):
 
     def with_periodic(self, name: str, order: int, amplitude: float, phase: float = 0.0) -> "Effects":
         """A copy with `a·sin(k·θm + φ)` added to effect `name` at order `k`, and the effect switched on."""
-        s = getattr(self, f"{name}_sin").at[order - 1].add(amplitude * jnp.cos(phase))
-        c = getattr(self, f"{name}_cos").at[order - 1].add(amplitude * jnp.sin(phase))
+        s = jnp.asarray(getattr(self, f"{name}_sin")).at[order - 1].add(amplitude * jnp.cos(phase))
+        c = jnp.asarray(getattr(self, f"{name}_cos")).at[order - 1].add(amplitude * jnp.sin(phase))
         new = eqx.tree_at(lambda e: (getattr(e, f"{name}_sin"), getattr(e, f"{name}_cos")), self, (s, c))
         return dataclasses.replace(new, active=frozenset(self.active | {name}))
 

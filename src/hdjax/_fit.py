@@ -423,9 +423,9 @@ def fit_parameters(
     theta0 = pmap.to_theta(p0)
     # several devices: split the experiment axis over all of them (masked dummies pad the batch)
     mesh = experiment_mesh() if jax.device_count() > 1 else None
+    n_exp = int(batch.time.shape[0])  # the real experiments (the progress line counts no dummies)
     if mesh is not None:
         batch, _ = shard_experiments(batch, mesh)
-    n_exp = int(batch.time.shape[0])
     with lm_progress(f"LM fit ({len(free)} parameters, {n_exp} experiments)", max_steps) as callback:
         run = _cached(_joint_fit_program, pmap.free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh,
                       callback is not None)

@@ -37,6 +37,7 @@ import pathlib
 from typing import Any
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 from ._data import write_dataset
@@ -792,8 +793,8 @@ def _with_periodic(base: Effects, name: str, order: int, amplitude: float, phase
     `active` field is set through the constructor.)"""
     if not 1 <= order <= MAX_ORDER:
         raise ValueError(f"`hide_effect`: order must be 1..{MAX_ORDER}, got {order}.")
-    s = getattr(base, f"{name}_sin").at[order - 1].add(amplitude * math.cos(phase))
-    c = getattr(base, f"{name}_cos").at[order - 1].add(amplitude * math.sin(phase))
+    s = jnp.asarray(getattr(base, f"{name}_sin")).at[order - 1].add(amplitude * math.cos(phase))
+    c = jnp.asarray(getattr(base, f"{name}_cos")).at[order - 1].add(amplitude * math.sin(phase))
     return dataclasses.replace(base, active=frozenset(base.active | {name}), **{f"{name}_sin": s, f"{name}_cos": c})
 
 
