@@ -55,13 +55,21 @@ print(json.dumps({
 """
 
 
-def _run(n_devices: int) -> dict:
+def _cpu_env(n_devices: int = 1) -> dict:
+    """This process's environment on the CPU with `n_devices` host devices (1: no count flag, and
+    no `HDJAX_HOST_DEVICES`, so that `use_host_devices` decides)."""
     env = dict(os.environ)
     flags = [f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f]
     if n_devices > 1:  # first: XLA stops reading flags at a malformed one
         flags.insert(0, f"--xla_force_host_platform_device_count={n_devices}")
     env["XLA_FLAGS"] = " ".join(flags)
     env["JAX_PLATFORMS"] = "cpu"
+    env.pop("HDJAX_HOST_DEVICES", None)
+    return env
+
+
+def _run(n_devices: int) -> dict:
+    env = _cpu_env(n_devices)
     here = str(pathlib.Path(__file__).resolve().parent)
     out = subprocess.run([sys.executable, "-c", SCRIPT, here], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -111,10 +119,6 @@ def test_use_host_devices_sets_the_count_before_jax_starts_and_import_starts_not
         "import jax\n"
         "print(started, n, again, jax.device_count())\n"
     )
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f)
-    env["JAX_PLATFORMS"] = "cpu"
-    env.pop("HDJAX_HOST_DEVICES", None)
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    out = subprocess.run([sys.executable, "-c", script], env=_cpu_env(), capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.split() == ["False", "3", "None", "3"], out.stdout

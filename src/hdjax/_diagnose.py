@@ -241,13 +241,15 @@ class _Problem(eqx.Module):
 
     def _pad(self, zs, batch, sigma=None):
         """Pad the experiment axis to a multiple of the device count (dummy experiments: masked,
-        at rest, with the first experiment's z). Returns (zs, batch, sigma, number of real ones)."""
+        at rest, with the first experiment's z; `zs` None where z is shared). Returns (zs, batch,
+        sigma, number of real ones)."""
         if self.mesh is None:
             return zs, batch, sigma, None
         padded, n = pad_experiments(batch, self.mesh.size)
         extra = padded.time.shape[0] - n
         if extra:
-            zs = jnp.concatenate([zs, jnp.broadcast_to(zs[:1], (extra,) + zs.shape[1:])])
+            if zs is not None:
+                zs = jnp.concatenate([zs, jnp.broadcast_to(zs[:1], (extra,) + zs.shape[1:])])
             if sigma is not None:
                 sigma = jnp.concatenate([sigma, jnp.ones((extra,) + sigma.shape[1:], sigma.dtype)])
         return zs, padded, sigma, n
@@ -261,7 +263,7 @@ class _Problem(eqx.Module):
         return jax.tree.map(lambda x: x[:n], self._trajectories(zs, p_ref, batch))
 
     def jacobian(self, z, tangents, p_ref, batch, sigma):
-        _, batch, sigma, n = self._pad(jnp.asarray(z)[None], batch, sigma)
+        _, batch, sigma, n = self._pad(None, batch, sigma)
         r, J = self._jacobian(z, tangents, p_ref, batch, sigma)
         return r[:n], J[:n]
 

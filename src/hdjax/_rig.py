@@ -37,7 +37,6 @@ import pathlib
 from typing import Any
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 
 from ._data import write_dataset
@@ -787,15 +786,11 @@ def hide_effect(
 
 
 def _with_periodic(base: Effects, name: str, order: int, amplitude: float, phase: float) -> Effects:
-    """`base` plus `amplitude·sin(order·θm + phase)` in periodic effect `name`, switched on.
-
-    (Same result as `Effects.with_periodic`, built with `dataclasses.replace` so that the static
-    `active` field is set through the constructor.)"""
+    """`base` plus `amplitude·sin(order·θm + phase)` in periodic effect `name`, switched on
+    (`Effects.with_periodic`, after checking the order)."""
     if not 1 <= order <= MAX_ORDER:
         raise ValueError(f"`hide_effect`: order must be 1..{MAX_ORDER}, got {order}.")
-    s = jnp.asarray(getattr(base, f"{name}_sin")).at[order - 1].add(amplitude * math.cos(phase))
-    c = jnp.asarray(getattr(base, f"{name}_cos")).at[order - 1].add(amplitude * math.sin(phase))
-    return dataclasses.replace(base, active=frozenset(base.active | {name}), **{f"{name}_sin": s, f"{name}_cos": c})
+    return base.with_periodic(name, order, amplitude, phase)
 
 
 def _with_values(base: Effects, name: str, **values) -> Effects:
