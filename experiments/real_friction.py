@@ -23,8 +23,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from hdjax._data import load_dataset  # noqa: E402
-from hdjax._friction_cli import _fig_heldout, _fig_time, _fig_velocity, friction_diagnosis_doc  # noqa: E402
+from hdjax._friction_cli import friction_diagnosis_doc  # noqa: E402
 from hdjax._friction_fit import FrictionProblem, fit_coulomb_viscous, rms_stats  # noqa: E402
+from hdjax._plots import friction_cv_figure, friction_heldout_time_figure, friction_velocity_figure  # noqa: E402
 
 
 def published(folder: pathlib.Path) -> dict[str, dict[str, float]]:
@@ -105,13 +106,13 @@ def main() -> int:
     print(f"pooled fit (all records' first 70 %): held-out RMS eq. 9 {pooled['rms']:.4g} N·m "
           f"(1 Hz {pooled['rms_lowpass_1hz']:.4g}), NRMSE {pooled['nrmse']:.3f}; Coulomb + viscous {cvs['rms']:.4g} N·m "
           f"(1 Hz {cvs['rms_lowpass_1hz']:.4g})")
-    _fig_time(problem, fit, rec, out / "eq9_heldout_time.png")
-    _fig_velocity(problem, fit.prediction[0], out / "eq9_vs_velocity.png", "eq. 9, pooled fit on first 70 %")
+    friction_heldout_time_figure(problem, fit, rec, out / "eq9_heldout_time.png")
+    friction_velocity_figure(problem, fit.prediction[0], out / "eq9_vs_velocity.png", "eq. 9, pooled fit on first 70 %")
 
     print("\n## diagnosis of the whole dataset (cross-validated)")
     t0 = time.time()
     doc = friction_diagnosis_doc(problem, ds.name, log=print)
-    _fig_heldout(problem, doc["_d"], out / "diagnosis_dataset.png")
+    friction_cv_figure(problem, doc["_d"], out / "diagnosis_dataset.png")
     _report(doc, time.time() - t0)
 
     if args.per_record and problem.E > 1:
@@ -126,7 +127,7 @@ def main() -> int:
             except ValueError as err:
                 print(f"not diagnosable: {err}")
                 continue
-            _fig_heldout(pe, d["_d"], out / f"diagnosis_{pathlib.Path(f).stem}.png")
+            friction_cv_figure(pe, d["_d"], out / f"diagnosis_{pathlib.Path(f).stem}.png")
             _report(d, time.time() - t0)
     print(f"\ntotal {time.time() - t_all:.1f} s; figures in {out}")
     return 0

@@ -34,3 +34,32 @@ def test_fig3_optimal_alpha_curve_fits_at_least_as_well(alpha_true):
         old = half["K1"] * (tors + half["offset"]) + half["Tst"] * np.asarray(
             smooth_signed_power(rate, opt["alpha"], _TORSION_RATE_SCALE))
         assert np.sqrt(np.mean((old - T) ** 2)) > 1.5 * opt["rms"]
+
+
+def test_diagnosis_figures_draw_spectra_residuals_and_the_loop(tmp_path):
+    """`hdjax diagnose`'s figures (`hdjax._plots.diagnosis_figures`) from a diagnosis result: the
+    order spectra, the torque residual before/after the extension and the constrained test's loop."""
+    from types import SimpleNamespace
+
+    import matplotlib.pyplot as plt
+
+    from hdjax._effects import MAX_ORDER
+    from hdjax._experiment import stack_experiments
+    from hdjax._plots import diagnosis_figures
+    from helpers import sine_experiment
+
+    exps = [sine_experiment("constrained", duration=0.4), sine_experiment("free", duration=0.3)]
+    m = np.asarray(stack_experiments(exps).mask)
+    n = m.shape[1]
+    t = np.arange(n) * 1e-3
+    base, ext = np.stack([np.sin(7 * t)] * 2), np.stack([1.1 * np.sin(7 * t)] * 2)
+    d = SimpleNamespace(
+        evidence={"order_spectra": {"constrained/torque": np.linspace(1.0, 0.1, MAX_ORDER)}},
+        findings=[{"effect": "cogging"}],
+        traces={"torque_base": base, "torque_extended": ext, "torsion_extended": 1e-4 * np.stack([np.cos(7 * t)] * 2)})
+    names = diagnosis_figures(tmp_path, None, exps, ["locked_01.csv", "free_01.csv"], d)
+    assert names == ["residual_spectra.png", "residual_before_after.png", "hysteresis_before_after.png"]
+    for name in names:
+        img = plt.imread(tmp_path / name)
+        assert img.ndim == 3 and min(img.shape[:2]) > 200 and float(img[..., :3].std()) > 0.01  # drawn, not blank
+    assert not list(tmp_path.glob(".*"))  # written atomically: no temporary file left behind

@@ -5,18 +5,13 @@ import pathlib
 import re
 import time
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 
 from ._config import section_options
 from ._data import Dataset
 from ._diagnose import covariate_drifts, diagnose
-from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM_NAMES, PERIODIC, SCALAR_FIELDS
-from ._experiment import stack_experiments
-from ._io import atomic_savefig, atomic_write_json, atomic_write_text
+from ._effects import EFFECT_NAMES, MODEL_FORM_NAMES, PERIODIC, SCALAR_FIELDS
+from ._io import atomic_write_json, atomic_write_text
 from ._paper_id import identify_paper
 from ._plant import Simulator
 from ._progress import task
@@ -140,7 +135,8 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     drifts = covariate_drifts(paper.per_experiment, exps)
     d.evidence["per_experiment_drifts"] = drifts
     log("[3/3] report and figures")
-    figs = _figures(out, dataset, exps, files, d)
+    from ._plots import diagnosis_figures  # matplotlib loads only when figures are drawn
+    figs = diagnosis_figures(out, dataset, exps, files, d)
     unexplained = list(d.unexplained)
     if not d.findings:
         unexplained.append({
@@ -218,62 +214,3 @@ def _report(r: dict) -> str:
     lines += ["## Figures", ""] + [f"![{f}]({f})" for f in r["figures"]] + [""]
     lines.append("The extended model (base parameters and effects) is saved in `extended_model.json`.")
     return "\n".join(lines) + "\n"
-
-
-def _figures(out, dataset, exps, files, d) -> list[str]:
-    names = []
-    spectra = d.evidence["order_spectra"]
-    if spectra:
-        fig, ax = plt.subplots(figsize=(7, 4))
-        k = np.arange(1, MAX_ORDER + 1)
-        w = 0.8 / len(spectra)
-        for j, (key, amp) in enumerate(spectra.items()):
-            amp = np.asarray(amp)
-            ax.bar(k + (j - len(spectra) / 2) * w, amp / max(amp.max(), 1e-300), width=w, label=key)
-        ax.set_xlabel("order (cycles per wave-generator turn)")
-        ax.set_ylabel("residual amplitude (normalised per channel)")
-        ax.set_title("Residual order spectra of the fitted paper model")
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
-        atomic_savefig(fig, out / "residual_spectra.png", dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        names.append("residual_spectra.png")
-    if d.findings and d.traces:
-        batch = stack_experiments(exps)
-        m = np.asarray(batch.mask)
-        base_T, ext_T = d.traces["torque_base"], d.traces["torque_extended"]
-        free = np.asarray(batch.free) > 0
-        pick = [j for j in (int(np.argmax(~free)) if (~free).any() else None, int(np.argmax(free)) if free.any() else None)
-                if j is not None]
-        fig, axes = plt.subplots(len(pick), 1, figsize=(8, 2.6 * len(pick)), squeeze=False)
-        for ax, j in zip(axes[:, 0], pick):
-            t = np.asarray(batch.time[j])[m[j]]
-            meas = np.asarray(batch.torque[j])[m[j]]
-            ax.plot(t, meas - base_T[j][m[j]], color="0.6", lw=0.7, label="measured − paper model")
-            ax.plot(t, ext_T[j][m[j]] - base_T[j][m[j]], color="C3", lw=1.0, label="extended − paper model")
-            ax.set_ylabel("torque residual (N·m)")
-            ax.set_title(f"{files[j]} ({'free' if free[j] else 'constrained'})", fontsize=9)
-            ax.grid(alpha=0.3)
-        axes[0, 0].legend(fontsize=8)
-        axes[-1, 0].set_xlabel("time (s)")
-        fig.tight_layout()
-        atomic_savefig(fig, out / "residual_before_after.png", dpi=110)
-        plt.close(fig)
-        names.append("residual_before_after.png")
-        # hysteresis loop of a constrained test: torque against torsion, measured vs both models
-        if (~free).any():
-            j = int(np.argmax(~free))
-            tw = d.traces["torsion_extended"][j][m[j]]
-            fig, ax = plt.subplots(figsize=(6, 4.5))
-            ax.plot(tw * 1e3, np.asarray(batch.torque[j])[m[j]], color="0.6", lw=0.6, label="measured")
-            ax.plot(tw * 1e3, base_T[j][m[j]], color="C0", lw=1.0, label="paper model")
-            ax.plot(tw * 1e3, ext_T[j][m[j]], color="C3", lw=1.0, ls="--", label="extended model")
-            ax.set_xlabel("torsion Δθ (mrad)")
-            ax.set_ylabel("torque T (N·m)")
-            ax.set_title(f"Hysteresis loop, {files[j]} (constrained)")
-            ax.legend(fontsize=8)
-            ax.grid(alpha=0.3)
-            atomic_savefig(fig, out / "hysteresis_before_after.png", dpi=110, bbox_inches="tight")
-            plt.close(fig)
-            names.append("hysteresis_before_after.png")
-    return names

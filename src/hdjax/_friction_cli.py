@@ -28,7 +28,7 @@ from ._friction_fit import (
     rms_stats,
 )
 from ._friction_lowspeed import fit_low_speed, low_speed_reason
-from ._io import atomic_savefig, atomic_write_json, atomic_write_text
+from ._io import atomic_write_json, atomic_write_text
 
 TRAIN_FRACTION = 0.7
 _TIED = {TIE_NEG_TO_POS: ("Tvn", "Tsn", "Tssn1"), TIE_POS_TO_NEG: ("Tvp", "Tsp", "Tssp1")}
@@ -264,9 +264,10 @@ def run_fit(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     hfit = s.get("_heldout_fit")
     if hfit is None:  # low-speed law: one pooled held-out prediction serves every panel
         hfit = types.SimpleNamespace(prediction=np.stack([s["_heldout_pred"]] * (problem.E + 1)))
-    figs = [_fig_velocity(problem, s["_pred"], out / "friction_vs_velocity.png",
+    from ._plots import friction_heldout_time_figure, friction_velocity_figure  # matplotlib loads only when figures are drawn
+    figs = [friction_velocity_figure(problem, s["_pred"], out / "friction_vs_velocity.png",
                           f"{label}, pooled fit on all samples", label=label),
-            _fig_time(problem, hfit, s["_heldout_rows"], out / "heldout_time.png")]
+            friction_heldout_time_figure(problem, hfit, s["_heldout_rows"], out / "heldout_time.png")]
     doc["figures"] = [f.name for f in figs]
     doc["timing_s"]["total"] = time.time() - t0
     atomic_write_json(out / "fit.json", doc)
@@ -464,7 +465,8 @@ def run_diagnose(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     doc = friction_diagnosis_doc(problem, dataset.name, log=log)
     d = doc.pop("_d")
     doc.pop("_pred_ext"), doc.pop("_pred_eq9")
-    figs = [_fig_heldout(problem, d, out / "heldout_cv.png")]
+    from ._plots import friction_cv_figure  # matplotlib loads only when figures are drawn
+    figs = [friction_cv_figure(problem, d, out / "heldout_cv.png")]
     doc["figures"] = [f.name for f in figs]
     doc["timing_s"] = {"total": time.time() - t0}
     atomic_write_json(out / "diagnosis.json", doc)
@@ -497,77 +499,3 @@ def _diag_report(dataset, doc, figs) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- figures
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _fig_velocity(problem, pred, path, title, label="eq. 9"):
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for e in range(problem.E):
-        m = problem.mask[e]
-        ax.plot(problem.v[e][m], problem.T[e][m], ".", ms=1, alpha=0.3, color="0.5",
-                label="measured" if e == 0 else None)
-        ax.plot(problem.v[e][m], pred[e][m], ".", ms=1, color="C3", label=f"model ({label})" if e == 0 else None)
-    ax.set_xlabel("velocity (rad/s)")
-    ax.set_ylabel("friction torque (N·m)")
-    ax.set_title(title)
-    ax.legend(markerscale=10)
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=110)
-    plt.close(fig)
-    return pathlib.Path(path)
-
-
-def _fig_time(problem, fit, rows, path, max_panels: int = 4):
-    plt = _plt()
-    E = min(problem.E, max_panels)
-    fig, axes = plt.subplots(E, 1, figsize=(9, 2.4 * E), squeeze=False)
-    t = np.asarray(problem.data.time)
-    for e in range(E):
-        ax = axes[e, 0]
-        m = problem.mask[e]
-        ax.plot(t[e][m], problem.T[e][m], lw=0.6, color="0.4", label="measured")
-        ax.plot(t[e][m], fit.prediction[1 + e][e][m], lw=0.8, color="C3", label="eq. 9 (fitted on first part alone)")
-        test = rows.test[1 + e][e] > 0
-        if test.any():
-            ax.axvspan(t[e][test].min(), t[e][test].max(), color="C0", alpha=0.08, label="held out")
-        ax.set_ylabel("friction torque (N·m)")
-        ax.set_title(problem.files[e], fontsize=9)
-        ax.legend(fontsize=7, loc="upper right")
-    axes[-1, 0].set_xlabel("time (s)")
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=110)
-    plt.close(fig)
-    return pathlib.Path(path)
-
-
-def _fig_heldout(problem, d, path, max_panels: int = 4):
-    plt = _plt()
-    E = min(problem.E, max_panels)
-    fig, axes = plt.subplots(E, 1, figsize=(9, 2.4 * E), squeeze=False)
-    t = np.asarray(problem.data.time)
-    names = " + ".join(f["effect"] for f in d.findings)
-    for e in range(E):
-        ax = axes[e, 0]
-        m = problem.mask[e]
-        ax.plot(t[e][m], problem.T[e][m], lw=0.6, color="0.4", label="measured")
-        ax.plot(t[e][m], d.baseline.heldout[e][m], lw=0.8, color="C3", label="eq. 9, held out")
-        if d.findings:
-            ax.plot(t[e][m], d.final.heldout[e][m], lw=0.8, color="C2", label=f"eq. 9 + {names}, held out")
-        ax.set_ylabel("friction torque (N·m)")
-        ax.set_title(problem.files[e], fontsize=9)
-        ax.legend(fontsize=7, loc="upper right")
-    axes[-1, 0].set_xlabel("time (s)")
-    fig.suptitle("cross-validated predictions (each sample predicted by the fold that held it out)", fontsize=9)
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=110)
-    plt.close(fig)
-    return pathlib.Path(path)

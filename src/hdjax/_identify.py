@@ -7,18 +7,14 @@ import time
 
 import equinox as eqx
 import jax.numpy as jnp
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 
 from ._config import section_options
 from ._data import Dataset
 from ._experiment import stack_experiments
 from ._fit import DEFAULT_FREE, fit_parameters, fit_per_experiment, nrmse
-from ._io import atomic_savefig, atomic_write_json, atomic_write_text
-from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Parameters
+from ._io import atomic_write_json, atomic_write_text
+from ._model import PARAMETER_NAMES, PARAMETER_UNITS
 from ._paper_id import identify_paper
 from ._plant import Simulator, simulate_batch
 from ._stepper import VelocityImplicit
@@ -236,7 +232,8 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
         params_json[k] = entry
 
     log("[4/4] report and figures")
-    figs = _figures(out, res.params, paper, full, traj, modes, files, drive, exps)
+    from ._plots import fit_figures  # matplotlib loads only when figures are drawn
+    figs = fit_figures(out, res.params, paper, full, traj, modes, files, drive, exps)
     total = time.time() - t_start
     result = {
         "schema": "hdjax.fit/1",
@@ -372,66 +369,3 @@ def hysteresis_curves(paper, experiment, drive, j: int) -> dict:
         curves.append({"label": label, "alpha": float(a), "K1": float(K1), "Tst": float(Tst), "offset": float(c),
                        "torque": model, "rms": float(np.sqrt(np.mean((model - T_filt) ** 2)))})
     return {"torsion": tors, "torque": np.asarray(experiment.torque)[:n_meas][:n], "curves": curves}
-
-
-def _figures(out, p: Parameters, paper, full, traj, modes, files, drive, experiments) -> list[str]:
-    m = np.asarray(full.mask)
-    t = np.asarray(full.time)
-    cons = [j for j, md in enumerate(modes) if md == "constrained"]
-    free = [j for j, md in enumerate(modes) if md == "free"]
-    names = []
-
-    # Fig. 3: hysteresis torsion curve of the locked record with the largest torque, with the
-    # paper's two compliance regressions of that record (each its own least-squares fit)
-    if cons:
-        j = max(cons, key=lambda j: float(np.max(np.abs(np.asarray(full.torque[j])[m[j]]))))
-        loop = hysteresis_curves(paper, experiments[j], drive, j)
-        fig, ax = plt.subplots(figsize=(6, 4.5))
-        ax.plot(loop["torsion"] * 1e3, loop["torque"], ".", ms=2, color="0.6", label="measured")
-        for c, style in zip(loop["curves"], ("--", "-.")):
-            ax.plot(loop["torsion"] * 1e3, c["torque"], style, label=f"{c['label']} (RMS error {c['rms']:.3g} N·m)")
-        ax.set_xlabel("torsion Δθ = θm/N (mrad)")
-        ax.set_ylabel("torque T (N·m)")
-        ax.set_title(f"Hysteresis torsion curve ({files[j]})")
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
-        atomic_savefig(fig, out / "fig3_hysteresis.png", dpi=120, bbox_inches="tight")
-        plt.close(fig)
-        names.append("fig3_hysteresis.png")
-
-    # Fig. 4: torque fit on four typical experiments
-    pick = (cons[:2] + free[:2]) if len(cons) >= 2 and len(free) >= 2 else (cons + free)[:4]
-    if pick:
-        fig, axes = plt.subplots(len(pick), 1, figsize=(8, 2.2 * len(pick)), squeeze=False)
-        for ax, j in zip(axes[:, 0], pick):
-            ax.plot(t[j][m[j]], np.asarray(full.torque[j])[m[j]], color="0.6", lw=0.8, label="measured")
-            ax.plot(t[j][m[j]], np.asarray(traj.torque[j])[m[j]], color="C0", lw=1.2, label="simulated")
-            ax.set_ylabel("torque (N·m)")
-            ax.set_title(f"{files[j]} ({modes[j]})", fontsize=9)
-            ax.grid(alpha=0.3)
-        axes[0, 0].legend(loc="upper right")
-        axes[-1, 0].set_xlabel("time (s)")
-        fig.tight_layout()
-        atomic_savefig(fig, out / "fig4_torque_fit.png", dpi=110)
-        plt.close(fig)
-        names.append("fig4_torque_fit.png")
-
-    # Fig. 5: simulated vs measured velocity and torque, free and constrained
-    pairs = [(j, md) for j, md in ((free[0] if free else None, "free"), (cons[0] if cons else None, "constrained")) if j is not None]
-    if pairs:
-        fig, axes = plt.subplots(2, len(pairs), figsize=(5.5 * len(pairs), 5.5), squeeze=False)
-        for c, (j, md) in enumerate(pairs):
-            for r_, (ch, unit) in enumerate((("motor_velocity", "rad/s"), ("torque", "N·m"))):
-                ax = axes[r_, c]
-                ax.plot(t[j][m[j]], np.asarray(getattr(full, ch)[j])[m[j]], color="0.6", lw=0.8, label="measured")
-                ax.plot(t[j][m[j]], np.asarray(getattr(traj, ch)[j])[m[j]], color="C3", lw=1.2, ls="--", label="simulated")
-                ax.set_ylabel(f"{ch.replace('_', ' ')} ({unit})")
-                ax.set_xlabel("time (s)")
-                ax.grid(alpha=0.3)
-                ax.set_title(f"{md}: {files[j]}", fontsize=9)
-        axes[0, 0].legend()
-        fig.tight_layout()
-        atomic_savefig(fig, out / "fig5_simulation.png", dpi=110)
-        plt.close(fig)
-        names.append("fig5_simulation.png")
-    return names

@@ -28,18 +28,13 @@ import time
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib
 import numpy as np
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-from matplotlib.colors import LogNorm
 
 from ._config import section_options
 from ._data import Dataset
 from ._experiment import Experiment, stack_experiments
 from ._fit import CHANNELS, DEFAULT_FREE, noise_levels
-from ._io import atomic_savefig, atomic_write_json, atomic_write_text
+from ._io import atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
 from ._plant import Simulator, Trajectory, is_fixed_cost, simulate
 from ._sharding import for_each_experiment
@@ -462,7 +457,8 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     advice = _advice(F, F_e, ok, names, est, fs_est, files, modes, batch, p)
     t0 = time.time()
     typical = _typical(info, ok, modes)
-    figs = _figures(out, names, info, ok, files, modes, batch, sens, typical, fs_all, abl_traj)
+    from ._plots import sensitivity_figures  # matplotlib loads only when figures are drawn
+    figs = sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical, fs_all, abl_traj)
     timing["figures"] = time.time() - t0
     timing["total"] = time.time() - t_start
 
@@ -883,115 +879,6 @@ def _typical(info, ok, modes) -> dict:
 
 def _short(f: str) -> str:
     return pathlib.Path(f).stem
-
-
-def _figures(out, names, info, ok, files, modes, batch, sens, typical, fs_all, abl_traj) -> list[str]:
-    figs = []
-    order = [j for j, m in enumerate(modes) if m == "constrained"] + [j for j, m in enumerate(modes) if m == "free"]
-    n_cons = sum(m == "constrained" for m in modes)
-
-    # heat map: parameters × experiments
-    M = np.array([[info[k, j] if ok[j] and info[k, j] > 0 else np.nan for j in order] for k in range(len(names))])
-    fig, ax = plt.subplots(figsize=(max(8, 0.22 * len(order) + 3), 4.8))
-    finite = M[np.isfinite(M)]
-    norm = LogNorm(vmin=max(finite.min(), finite.max() * 1e-8), vmax=finite.max()) if finite.size else None
-    im = ax.imshow(np.ma.masked_invalid(M), aspect="auto", cmap="viridis", norm=norm, interpolation="nearest")
-    ax.set_yticks(range(len(names)), names)
-    ax.set_xticks(range(len(order)), [_short(files[j]) for j in order], rotation=90, fontsize=6)
-    if 0 < n_cons < len(order):
-        ax.axvline(n_cons - 0.5, color="w", lw=2)
-    ax.set_xlabel(f"experiment (constrained: first {n_cons}, free: last {len(order) - n_cons})")
-    ax.set_ylabel("parameter p_k")
-    ax.set_title("Information per experiment, √(Σ_t Σ_ch (∂y/∂ln p_k / σ_ch)²)")
-    cb = fig.colorbar(im, ax=ax)
-    cb.set_label("1 / relative SE of p_k alone (–), log scale")
-    fig.tight_layout()
-    atomic_savefig(fig, out / "sensitivity_heatmap.png", dpi=120)
-    plt.close(fig)
-    figs.append("sensitivity_heatmap.png")
-
-    # time-resolved sensitivity curves for a typical constrained and free experiment
-    cols = [(m, typical[m]) for m in ("constrained", "free") if m in typical]
-    if cols:
-        t = np.asarray(batch.time)
-        mask = np.asarray(batch.mask)
-        S = np.asarray(sens.S)
-        chans = ("torque", "motor_velocity")
-        fig, axes = plt.subplots(len(chans), len(cols), figsize=(6.5 * len(cols), 6), squeeze=False, sharex="col")
-        colors = plt.get_cmap("tab20")(np.linspace(0, 1, 20))
-        for ci, (mode, j) in enumerate(cols):
-            for ri, ch in enumerate(chans):
-                ax = axes[ri, ci]
-                c = CHANNELS.index(ch)
-                for k, name in enumerate(names):
-                    ax.plot(t[j][mask[j]], S[j, c][mask[j], k], lw=1, color=colors[(2 * k) % 20 + (k >= 10)],
-                            ls="-" if k < 6 else "--", label=name)
-                ax.set_ylabel(f"∂{CHANNEL_SYMBOL[ch]}/∂ln p ({CHANNEL_UNITS[ch]})")
-                ax.grid(alpha=0.3)
-                if ri == 0:
-                    ax.set_title(f"{mode}: {files[j]}", fontsize=9)
-            axes[-1, ci].set_xlabel("time (s)")
-        axes[0, -1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="parameter")
-        fig.tight_layout()
-        atomic_savefig(fig, out / "sensitivity_curves.png", dpi=110)
-        plt.close(fig)
-        figs.append("sensitivity_curves.png")
-
-    # correlation matrix
-    C = np.array(fs_all["correlation"], dtype=float)
-    fig, ax = plt.subplots(figsize=(6.8, 5.8))
-    im = ax.imshow(C, cmap="RdBu_r", vmin=-1, vmax=1)
-    ax.set_xticks(range(len(names)), names, rotation=90)
-    ax.set_yticks(range(len(names)), names)
-    for a in range(len(names)):
-        for b in range(len(names)):
-            if np.isfinite(C[a, b]):
-                ax.text(b, a, f"{C[a, b]:.2f}", ha="center", va="center", fontsize=6,
-                        color="w" if abs(C[a, b]) > 0.6 else "k")
-    ax.set_title("Parameter correlation (noise-only, all 11 free)")
-    cb = fig.colorbar(im, ax=ax)
-    cb.set_label("correlation coefficient (–)")
-    fig.tight_layout()
-    atomic_savefig(fig, out / "correlation.png", dpi=120)
-    plt.close(fig)
-    figs.append("correlation.png")
-
-    # paper's Fig. 6 (free) and Fig. 7 (constrained): measured vs complete vs simplified
-    if abl_traj is not None:
-        t = np.asarray(batch.time)
-        mask = np.asarray(batch.mask)
-        y_c = np.asarray(sens.outputs)
-        lanes = abl_traj["lanes"]
-        for fname, mode, keys in (("fig6_free_ablation.png", "free", ("coulomb_zero", "viscous_zero")),
-                                  ("fig7_constrained_ablation.png", "constrained", ("K1_div10", "Tst_zero"))):
-            if mode not in typical:
-                continue
-            j = typical[mode]
-            fig, axes = plt.subplots(2, len(keys), figsize=(6.2 * len(keys), 5.8), squeeze=False, sharex=True)
-            for ci, key in enumerate(keys):
-                a = [i for i, ab in enumerate(ABLATIONS) if ab[0] == key][0]
-                label = ABLATIONS[a][1]
-                li = [i for i, (aa, jj) in enumerate(lanes) if aa == a and jj == j]
-                for ri, (ch, c) in enumerate((("motor_velocity", 1), ("torque", 0))):
-                    ax = axes[ri, ci]
-                    meas = np.asarray(getattr(batch, ch))[j][mask[j]]
-                    ax.plot(t[j][mask[j]], meas, color="0.7", lw=2.4, label="measured")
-                    ax.plot(t[j][mask[j]], y_c[j, c][mask[j]], color="C0", lw=1.2, label="complete model")
-                    if li:
-                        ok_l = bool(abl_traj["success"][li[0]])
-                        ax.plot(t[j][mask[j]], abl_traj[ch][li[0]][mask[j]], color="C3", lw=1.2, ls="--",
-                                label=label + ("" if ok_l else " (solve failed)"))
-                    ax.set_ylabel(f"{ch.replace('_', ' ')} ({CHANNEL_UNITS[ch]})")
-                    ax.grid(alpha=0.3)
-                    if ri == 0:
-                        ax.set_title(f"{label}: {files[j]} ({mode})", fontsize=9)
-                        ax.legend(fontsize=8)
-                axes[-1, ci].set_xlabel("time (s)")
-            fig.tight_layout()
-            atomic_savefig(fig, out / fname, dpi=110)
-            plt.close(fig)
-            figs.append(fname)
-    return figs
 
 
 def _pct(v):

@@ -49,11 +49,7 @@ from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
-import matplotlib
 import numpy as np
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 
 from . import _loopshape as ls
 from ._config import section_options
@@ -77,7 +73,7 @@ from ._control import (
 )
 from ._data import Dataset
 from ._effects import PERIODIC, SCALAR_FIELDS, Effects
-from ._io import atomic_savefig, atomic_write_json, atomic_write_text
+from ._io import atomic_write_json, atomic_write_text
 from ._model import EQ9_COEFFICIENTS, PARAMETER_NAMES, Parameters, Smoothing
 from ._progress import task
 
@@ -602,7 +598,8 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
 
     log("[6/6] report and figures")
     kind = "bench" if bench is not None else "identified model"
-    figs = _figures(out, traj, sim, ref_info, search, res, ilim, kind)
+    from ._plots import tune_figures  # matplotlib loads only when figures are drawn
+    figs = tune_figures(out, traj, sim, ref_info, search, res, ilim, kind)
     total_t = time.time() - t_start
     result = {
         "schema": "hdjax.tune/2",
@@ -718,68 +715,6 @@ def _validate_model(nominal_plant: Plant, gains: dict, R, ctrl: TorqueController
     return out
 
 
-COLORS = {"relay_zn": "tab:orange", "model_pi": "tab:purple", "tuned": "tab:blue"}
-
-
-def _figures(out, traj, sim, ref_info, search, res, ilim, kind) -> list[str]:
-    """tracking.png, control_effort.png, cost_history.png; `kind` ("bench" or "identified model")
-    names what the validation ran on, in every title and legend."""
-    names = []
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
-    for j, (ax, info) in enumerate(zip(axes.flat, ref_info)):
-        t = np.asarray(traj["tuned"]["time"][j])
-        ax.plot(t, np.asarray(traj["tuned"]["reference"][j]), "k--", lw=1.2, label="reference")
-        for name in CONTROLLERS:
-            ax.plot(t, np.asarray(traj[name]["measured_torque"][j]), color=COLORS[name], lw=0.5, alpha=0.35)
-            ax.plot(t, np.asarray(traj[name]["torque"][j]), color=COLORS[name], lw=1.2, label=f"{LABELS[name]}: {kind}, true torque")
-        ax.plot(t, np.asarray(sim.torque[j]), ":", color="tab:green", lw=1.3, label="tuned: tuning model, simulated")
-        ax.set_title(f"{info['name'].replace('_', ' ')} ({info['amplitude']:.3g} N·m)")
-        ax.set_ylabel("output torque (N·m)")
-    for ax in axes[1]:
-        ax.set_xlabel("time (s)")
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle(f"Torque tracking on the {kind}: baselines vs tuned (thin: measured torque)")
-    fig.tight_layout()
-    atomic_savefig(fig, out / "tracking.png", dpi=110)
-    plt.close(fig)
-    names.append("tracking.png")
-
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
-    for j, (ax, info) in enumerate(zip(axes.flat, ref_info)):
-        t = np.asarray(traj["tuned"]["time"][j])
-        for name in CONTROLLERS:
-            ax.plot(t, np.asarray(traj[name]["current"][j]), color=COLORS[name], lw=1.0, label=f"{LABELS[name]}: {kind}")
-        ax.plot(t, np.asarray(sim.current[j]), ":", color="tab:green", lw=1.2, label="tuned: tuning model, simulated")
-        ax.axhline(ilim, color="0.5", lw=0.8, ls="--", label="current limit")
-        ax.axhline(-ilim, color="0.5", lw=0.8, ls="--")
-        ax.set_title(info["name"].replace("_", " "))
-        ax.set_ylabel("motor current (A)")
-    for ax in axes[1]:
-        ax.set_xlabel("time (s)")
-    axes[0, 0].legend(fontsize=7)
-    fig.suptitle(f"Control effort on the {kind}")
-    fig.tight_layout()
-    atomic_savefig(fig, out / "control_effort.png", dpi=110)
-    plt.close(fig)
-    names.append("control_effort.png")
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    sc = [c["cost"] for c in search]
-    ns = len(sc)
-    ax.semilogy(np.arange(-ns, 0), sc, "s", color="0.5", ms=4, label="start search (tuning model)")
-    for k, name in enumerate(("relay_zn", "model_pi")):
-        ax.axhline(search[k]["cost"], color=COLORS[name], ls="--", label=LABELS[name])
-    for j, r in enumerate(res.runs):
-        ax.semilogy(np.arange(len(r["history"])), r["history"], "o-", ms=3, label=f"BFGS start {j + 1}" + (" (kept)" if j == res.best_run else ""))
-    ax.set_xlabel("candidate (<0: start search) / accepted BFGS iterate (-)")
-    ax.set_ylabel("tuning cost (-)")
-    ax.set_title("Tuning cost (model: plant sets x references + margin term)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    atomic_savefig(fig, out / "cost_history.png", dpi=110)
-    plt.close(fig)
-    names.append("cost_history.png")
-    return names
 
 
 def _fmt(v):

@@ -1,0 +1,406 @@
+"""Every figure the commands write, and the only module that imports matplotlib (Agg backend).
+
+One function per workflow (`fit_figures`, `sensitivity_figures`, `tune_figures`,
+`diagnosis_figures`, and the friction-only figures), each taking the workflow's computed results
+and an output folder and writing PNGs atomically (`hdjax._io.atomic_savefig`). The workflows import
+this module when they draw, so a library import never loads matplotlib."""
+
+import pathlib
+
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.colors import LogNorm  # noqa: E402
+
+from ._effects import MAX_ORDER
+from ._experiment import stack_experiments
+from ._fit import CHANNELS
+from ._identify import hysteresis_curves
+from ._io import atomic_savefig
+from ._model import Parameters
+from ._sensitivity import ABLATIONS, CHANNEL_SYMBOL, CHANNEL_UNITS, _short
+from ._tune import CONTROLLERS, LABELS
+
+COLORS = {"relay_zn": "tab:orange", "model_pi": "tab:purple", "tuned": "tab:blue"}
+
+
+# ---- fit ----
+
+def fit_figures(out, p: Parameters, paper, full, traj, modes, files, drive, experiments) -> list[str]:
+    """Paper-style figures of `hdjax fit` into folder `out`: Fig. 3 (hysteresis torsion curve of the
+    largest locked test with the paper's two compliance regressions), Fig. 4 (torque, measured vs
+    simulated, four typical tests) and Fig. 5 (velocity and torque, one free and one locked test).
+    Returns the file names written."""
+    m = np.asarray(full.mask)
+    t = np.asarray(full.time)
+    cons = [j for j, md in enumerate(modes) if md == "constrained"]
+    free = [j for j, md in enumerate(modes) if md == "free"]
+    names = []
+
+    # Fig. 3: hysteresis torsion curve of the locked record with the largest torque, with the
+    # paper's two compliance regressions of that record (each its own least-squares fit)
+    if cons:
+        j = max(cons, key=lambda j: float(np.max(np.abs(np.asarray(full.torque[j])[m[j]]))))
+        loop = hysteresis_curves(paper, experiments[j], drive, j)
+        fig, ax = plt.subplots(figsize=(6, 4.5))
+        ax.plot(loop["torsion"] * 1e3, loop["torque"], ".", ms=2, color="0.6", label="measured")
+        for c, style in zip(loop["curves"], ("--", "-.")):
+            ax.plot(loop["torsion"] * 1e3, c["torque"], style, label=f"{c['label']} (RMS error {c['rms']:.3g} N·m)")
+        ax.set_xlabel("torsion Δθ = θm/N (mrad)")
+        ax.set_ylabel("torque T (N·m)")
+        ax.set_title(f"Hysteresis torsion curve ({files[j]})")
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+        atomic_savefig(fig, out / "fig3_hysteresis.png", dpi=120, bbox_inches="tight")
+        plt.close(fig)
+        names.append("fig3_hysteresis.png")
+
+    # Fig. 4: torque fit on four typical experiments
+    pick = (cons[:2] + free[:2]) if len(cons) >= 2 and len(free) >= 2 else (cons + free)[:4]
+    if pick:
+        fig, axes = plt.subplots(len(pick), 1, figsize=(8, 2.2 * len(pick)), squeeze=False)
+        for ax, j in zip(axes[:, 0], pick):
+            ax.plot(t[j][m[j]], np.asarray(full.torque[j])[m[j]], color="0.6", lw=0.8, label="measured")
+            ax.plot(t[j][m[j]], np.asarray(traj.torque[j])[m[j]], color="C0", lw=1.2, label="simulated")
+            ax.set_ylabel("torque (N·m)")
+            ax.set_title(f"{files[j]} ({modes[j]})", fontsize=9)
+            ax.grid(alpha=0.3)
+        axes[0, 0].legend(loc="upper right")
+        axes[-1, 0].set_xlabel("time (s)")
+        fig.tight_layout()
+        atomic_savefig(fig, out / "fig4_torque_fit.png", dpi=110)
+        plt.close(fig)
+        names.append("fig4_torque_fit.png")
+
+    # Fig. 5: simulated vs measured velocity and torque, free and constrained
+    pairs = [(j, md) for j, md in ((free[0] if free else None, "free"), (cons[0] if cons else None, "constrained")) if j is not None]
+    if pairs:
+        fig, axes = plt.subplots(2, len(pairs), figsize=(5.5 * len(pairs), 5.5), squeeze=False)
+        for c, (j, md) in enumerate(pairs):
+            for r_, (ch, unit) in enumerate((("motor_velocity", "rad/s"), ("torque", "N·m"))):
+                ax = axes[r_, c]
+                ax.plot(t[j][m[j]], np.asarray(getattr(full, ch)[j])[m[j]], color="0.6", lw=0.8, label="measured")
+                ax.plot(t[j][m[j]], np.asarray(getattr(traj, ch)[j])[m[j]], color="C3", lw=1.2, ls="--", label="simulated")
+                ax.set_ylabel(f"{ch.replace('_', ' ')} ({unit})")
+                ax.set_xlabel("time (s)")
+                ax.grid(alpha=0.3)
+                ax.set_title(f"{md}: {files[j]}", fontsize=9)
+        axes[0, 0].legend()
+        fig.tight_layout()
+        atomic_savefig(fig, out / "fig5_simulation.png", dpi=110)
+        plt.close(fig)
+        names.append("fig5_simulation.png")
+    return names
+
+
+# ---- sensitivity ----
+
+def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical, fs_all, abl_traj) -> list[str]:
+    """Figures of `hdjax sensitivity` into `out`: information heat map (parameters × experiments),
+    time-resolved sensitivities of a typical test per mode, the correlation matrix and the paper's
+    Figs. 6–7 (complete vs simplified model). Returns the file names written."""
+    figs = []
+    order = [j for j, m in enumerate(modes) if m == "constrained"] + [j for j, m in enumerate(modes) if m == "free"]
+    n_cons = sum(m == "constrained" for m in modes)
+
+    # heat map: parameters × experiments
+    M = np.array([[info[k, j] if ok[j] and info[k, j] > 0 else np.nan for j in order] for k in range(len(names))])
+    fig, ax = plt.subplots(figsize=(max(8, 0.22 * len(order) + 3), 4.8))
+    finite = M[np.isfinite(M)]
+    norm = LogNorm(vmin=max(finite.min(), finite.max() * 1e-8), vmax=finite.max()) if finite.size else None
+    im = ax.imshow(np.ma.masked_invalid(M), aspect="auto", cmap="viridis", norm=norm, interpolation="nearest")
+    ax.set_yticks(range(len(names)), names)
+    ax.set_xticks(range(len(order)), [_short(files[j]) for j in order], rotation=90, fontsize=6)
+    if 0 < n_cons < len(order):
+        ax.axvline(n_cons - 0.5, color="w", lw=2)
+    ax.set_xlabel(f"experiment (constrained: first {n_cons}, free: last {len(order) - n_cons})")
+    ax.set_ylabel("parameter p_k")
+    ax.set_title("Information per experiment, √(Σ_t Σ_ch (∂y/∂ln p_k / σ_ch)²)")
+    cb = fig.colorbar(im, ax=ax)
+    cb.set_label("1 / relative SE of p_k alone (–), log scale")
+    fig.tight_layout()
+    atomic_savefig(fig, out / "sensitivity_heatmap.png", dpi=120)
+    plt.close(fig)
+    figs.append("sensitivity_heatmap.png")
+
+    # time-resolved sensitivity curves for a typical constrained and free experiment
+    cols = [(m, typical[m]) for m in ("constrained", "free") if m in typical]
+    if cols:
+        t = np.asarray(batch.time)
+        mask = np.asarray(batch.mask)
+        S = np.asarray(sens.S)
+        chans = ("torque", "motor_velocity")
+        fig, axes = plt.subplots(len(chans), len(cols), figsize=(6.5 * len(cols), 6), squeeze=False, sharex="col")
+        colors = plt.get_cmap("tab20")(np.linspace(0, 1, 20))
+        for ci, (mode, j) in enumerate(cols):
+            for ri, ch in enumerate(chans):
+                ax = axes[ri, ci]
+                c = CHANNELS.index(ch)
+                for k, name in enumerate(names):
+                    ax.plot(t[j][mask[j]], S[j, c][mask[j], k], lw=1, color=colors[(2 * k) % 20 + (k >= 10)],
+                            ls="-" if k < 6 else "--", label=name)
+                ax.set_ylabel(f"∂{CHANNEL_SYMBOL[ch]}/∂ln p ({CHANNEL_UNITS[ch]})")
+                ax.grid(alpha=0.3)
+                if ri == 0:
+                    ax.set_title(f"{mode}: {files[j]}", fontsize=9)
+            axes[-1, ci].set_xlabel("time (s)")
+        axes[0, -1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="parameter")
+        fig.tight_layout()
+        atomic_savefig(fig, out / "sensitivity_curves.png", dpi=110)
+        plt.close(fig)
+        figs.append("sensitivity_curves.png")
+
+    # correlation matrix
+    C = np.array(fs_all["correlation"], dtype=float)
+    fig, ax = plt.subplots(figsize=(6.8, 5.8))
+    im = ax.imshow(C, cmap="RdBu_r", vmin=-1, vmax=1)
+    ax.set_xticks(range(len(names)), names, rotation=90)
+    ax.set_yticks(range(len(names)), names)
+    for a in range(len(names)):
+        for b in range(len(names)):
+            if np.isfinite(C[a, b]):
+                ax.text(b, a, f"{C[a, b]:.2f}", ha="center", va="center", fontsize=6,
+                        color="w" if abs(C[a, b]) > 0.6 else "k")
+    ax.set_title("Parameter correlation (noise-only, all 11 free)")
+    cb = fig.colorbar(im, ax=ax)
+    cb.set_label("correlation coefficient (–)")
+    fig.tight_layout()
+    atomic_savefig(fig, out / "correlation.png", dpi=120)
+    plt.close(fig)
+    figs.append("correlation.png")
+
+    # paper's Fig. 6 (free) and Fig. 7 (constrained): measured vs complete vs simplified
+    if abl_traj is not None:
+        t = np.asarray(batch.time)
+        mask = np.asarray(batch.mask)
+        y_c = np.asarray(sens.outputs)
+        lanes = abl_traj["lanes"]
+        for fname, mode, keys in (("fig6_free_ablation.png", "free", ("coulomb_zero", "viscous_zero")),
+                                  ("fig7_constrained_ablation.png", "constrained", ("K1_div10", "Tst_zero"))):
+            if mode not in typical:
+                continue
+            j = typical[mode]
+            fig, axes = plt.subplots(2, len(keys), figsize=(6.2 * len(keys), 5.8), squeeze=False, sharex=True)
+            for ci, key in enumerate(keys):
+                a = [i for i, ab in enumerate(ABLATIONS) if ab[0] == key][0]
+                label = ABLATIONS[a][1]
+                li = [i for i, (aa, jj) in enumerate(lanes) if aa == a and jj == j]
+                for ri, (ch, c) in enumerate((("motor_velocity", 1), ("torque", 0))):
+                    ax = axes[ri, ci]
+                    meas = np.asarray(getattr(batch, ch))[j][mask[j]]
+                    ax.plot(t[j][mask[j]], meas, color="0.7", lw=2.4, label="measured")
+                    ax.plot(t[j][mask[j]], y_c[j, c][mask[j]], color="C0", lw=1.2, label="complete model")
+                    if li:
+                        ok_l = bool(abl_traj["success"][li[0]])
+                        ax.plot(t[j][mask[j]], abl_traj[ch][li[0]][mask[j]], color="C3", lw=1.2, ls="--",
+                                label=label + ("" if ok_l else " (solve failed)"))
+                    ax.set_ylabel(f"{ch.replace('_', ' ')} ({CHANNEL_UNITS[ch]})")
+                    ax.grid(alpha=0.3)
+                    if ri == 0:
+                        ax.set_title(f"{label}: {files[j]} ({mode})", fontsize=9)
+                        ax.legend(fontsize=8)
+                axes[-1, ci].set_xlabel("time (s)")
+            fig.tight_layout()
+            atomic_savefig(fig, out / fname, dpi=110)
+            plt.close(fig)
+            figs.append(fname)
+    return figs
+
+
+# ---- tune ----
+
+def tune_figures(out, traj, sim, ref_info, search, res, ilim, kind) -> list[str]:
+    """Figures of `hdjax tune` into `out`: tracking and control effort of each controller against
+    the reference, and the tuning cost history. Returns the file names written."""
+    """tracking.png, control_effort.png, cost_history.png; `kind` ("bench" or "identified model")
+    names what the validation ran on, in every title and legend."""
+    names = []
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    for j, (ax, info) in enumerate(zip(axes.flat, ref_info)):
+        t = np.asarray(traj["tuned"]["time"][j])
+        ax.plot(t, np.asarray(traj["tuned"]["reference"][j]), "k--", lw=1.2, label="reference")
+        for name in CONTROLLERS:
+            ax.plot(t, np.asarray(traj[name]["measured_torque"][j]), color=COLORS[name], lw=0.5, alpha=0.35)
+            ax.plot(t, np.asarray(traj[name]["torque"][j]), color=COLORS[name], lw=1.2, label=f"{LABELS[name]}: {kind}, true torque")
+        ax.plot(t, np.asarray(sim.torque[j]), ":", color="tab:green", lw=1.3, label="tuned: tuning model, simulated")
+        ax.set_title(f"{info['name'].replace('_', ' ')} ({info['amplitude']:.3g} N·m)")
+        ax.set_ylabel("output torque (N·m)")
+    for ax in axes[1]:
+        ax.set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(f"Torque tracking on the {kind}: baselines vs tuned (thin: measured torque)")
+    fig.tight_layout()
+    atomic_savefig(fig, out / "tracking.png", dpi=110)
+    plt.close(fig)
+    names.append("tracking.png")
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
+    for j, (ax, info) in enumerate(zip(axes.flat, ref_info)):
+        t = np.asarray(traj["tuned"]["time"][j])
+        for name in CONTROLLERS:
+            ax.plot(t, np.asarray(traj[name]["current"][j]), color=COLORS[name], lw=1.0, label=f"{LABELS[name]}: {kind}")
+        ax.plot(t, np.asarray(sim.current[j]), ":", color="tab:green", lw=1.2, label="tuned: tuning model, simulated")
+        ax.axhline(ilim, color="0.5", lw=0.8, ls="--", label="current limit")
+        ax.axhline(-ilim, color="0.5", lw=0.8, ls="--")
+        ax.set_title(info["name"].replace("_", " "))
+        ax.set_ylabel("motor current (A)")
+    for ax in axes[1]:
+        ax.set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(f"Control effort on the {kind}")
+    fig.tight_layout()
+    atomic_savefig(fig, out / "control_effort.png", dpi=110)
+    plt.close(fig)
+    names.append("control_effort.png")
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    sc = [c["cost"] for c in search]
+    ns = len(sc)
+    ax.semilogy(np.arange(-ns, 0), sc, "s", color="0.5", ms=4, label="start search (tuning model)")
+    for k, name in enumerate(("relay_zn", "model_pi")):
+        ax.axhline(search[k]["cost"], color=COLORS[name], ls="--", label=LABELS[name])
+    for j, r in enumerate(res.runs):
+        ax.semilogy(np.arange(len(r["history"])), r["history"], "o-", ms=3, label=f"BFGS start {j + 1}" + (" (kept)" if j == res.best_run else ""))
+    ax.set_xlabel("candidate (<0: start search) / accepted BFGS iterate (-)")
+    ax.set_ylabel("tuning cost (-)")
+    ax.set_title("Tuning cost (model: plant sets x references + margin term)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    atomic_savefig(fig, out / "cost_history.png", dpi=110)
+    plt.close(fig)
+    names.append("cost_history.png")
+    return names
+
+
+# ---- diagnose ----
+
+def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
+    """Figures of `hdjax diagnose` into `out`: residual order spectra of the fitted paper model, and
+    where effects were found, the torque residual before/after the extension and a locked test's
+    hysteresis loop under both models. Returns the file names written."""
+    names = []
+    spectra = d.evidence["order_spectra"]
+    if spectra:
+        fig, ax = plt.subplots(figsize=(7, 4))
+        k = np.arange(1, MAX_ORDER + 1)
+        w = 0.8 / len(spectra)
+        for j, (key, amp) in enumerate(spectra.items()):
+            amp = np.asarray(amp)
+            ax.bar(k + (j - len(spectra) / 2) * w, amp / max(amp.max(), 1e-300), width=w, label=key)
+        ax.set_xlabel("order (cycles per wave-generator turn)")
+        ax.set_ylabel("residual amplitude (normalised per channel)")
+        ax.set_title("Residual order spectra of the fitted paper model")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+        atomic_savefig(fig, out / "residual_spectra.png", dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        names.append("residual_spectra.png")
+    if d.findings and d.traces:
+        batch = stack_experiments(exps)
+        m = np.asarray(batch.mask)
+        base_T, ext_T = d.traces["torque_base"], d.traces["torque_extended"]
+        free = np.asarray(batch.free) > 0
+        pick = [j for j in (int(np.argmax(~free)) if (~free).any() else None, int(np.argmax(free)) if free.any() else None)
+                if j is not None]
+        fig, axes = plt.subplots(len(pick), 1, figsize=(8, 2.6 * len(pick)), squeeze=False)
+        for ax, j in zip(axes[:, 0], pick):
+            t = np.asarray(batch.time[j])[m[j]]
+            meas = np.asarray(batch.torque[j])[m[j]]
+            ax.plot(t, meas - base_T[j][m[j]], color="0.6", lw=0.7, label="measured − paper model")
+            ax.plot(t, ext_T[j][m[j]] - base_T[j][m[j]], color="C3", lw=1.0, label="extended − paper model")
+            ax.set_ylabel("torque residual (N·m)")
+            ax.set_title(f"{files[j]} ({'free' if free[j] else 'constrained'})", fontsize=9)
+            ax.grid(alpha=0.3)
+        axes[0, 0].legend(fontsize=8)
+        axes[-1, 0].set_xlabel("time (s)")
+        fig.tight_layout()
+        atomic_savefig(fig, out / "residual_before_after.png", dpi=110)
+        plt.close(fig)
+        names.append("residual_before_after.png")
+        # hysteresis loop of a constrained test: torque against torsion, measured vs both models
+        if (~free).any():
+            j = int(np.argmax(~free))
+            tw = d.traces["torsion_extended"][j][m[j]]
+            fig, ax = plt.subplots(figsize=(6, 4.5))
+            ax.plot(tw * 1e3, np.asarray(batch.torque[j])[m[j]], color="0.6", lw=0.6, label="measured")
+            ax.plot(tw * 1e3, base_T[j][m[j]], color="C0", lw=1.0, label="paper model")
+            ax.plot(tw * 1e3, ext_T[j][m[j]], color="C3", lw=1.0, ls="--", label="extended model")
+            ax.set_xlabel("torsion Δθ (mrad)")
+            ax.set_ylabel("torque T (N·m)")
+            ax.set_title(f"Hysteresis loop, {files[j]} (constrained)")
+            ax.legend(fontsize=8)
+            ax.grid(alpha=0.3)
+            atomic_savefig(fig, out / "hysteresis_before_after.png", dpi=110, bbox_inches="tight")
+            plt.close(fig)
+            names.append("hysteresis_before_after.png")
+    return names
+
+
+# ---- friction-only fit and diagnosis ----
+
+def friction_velocity_figure(problem, pred, path, title, label="eq. 9"):
+    """Friction torque (N·m) against velocity (rad/s): measured points and the model `pred`."""
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for e in range(problem.E):
+        m = problem.mask[e]
+        ax.plot(problem.v[e][m], problem.T[e][m], ".", ms=1, alpha=0.3, color="0.5",
+                label="measured" if e == 0 else None)
+        ax.plot(problem.v[e][m], pred[e][m], ".", ms=1, color="C3", label=f"model ({label})" if e == 0 else None)
+    ax.set_xlabel("velocity (rad/s)")
+    ax.set_ylabel("friction torque (N·m)")
+    ax.set_title(title)
+    ax.legend(markerscale=10)
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=110)
+    plt.close(fig)
+    return pathlib.Path(path)
+
+
+def friction_heldout_time_figure(problem, fit, rows, path, max_panels: int = 4):
+    """Held-out records against time: measured friction torque and the fitted model's prediction."""
+    E = min(problem.E, max_panels)
+    fig, axes = plt.subplots(E, 1, figsize=(9, 2.4 * E), squeeze=False)
+    t = np.asarray(problem.data.time)
+    for e in range(E):
+        ax = axes[e, 0]
+        m = problem.mask[e]
+        ax.plot(t[e][m], problem.T[e][m], lw=0.6, color="0.4", label="measured")
+        ax.plot(t[e][m], fit.prediction[1 + e][e][m], lw=0.8, color="C3", label="eq. 9 (fitted on first part alone)")
+        test = rows.test[1 + e][e] > 0
+        if test.any():
+            ax.axvspan(t[e][test].min(), t[e][test].max(), color="C0", alpha=0.08, label="held out")
+        ax.set_ylabel("friction torque (N·m)")
+        ax.set_title(problem.files[e], fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=110)
+    plt.close(fig)
+    return pathlib.Path(path)
+
+
+def friction_cv_figure(problem, d, path, max_panels: int = 4):
+    """Friction-only diagnosis: measured friction torque and the held-out predictions of eq. 9 and of
+    the extended model, one panel per record (at most `max_panels`)."""
+    E = min(problem.E, max_panels)
+    fig, axes = plt.subplots(E, 1, figsize=(9, 2.4 * E), squeeze=False)
+    t = np.asarray(problem.data.time)
+    names = " + ".join(f["effect"] for f in d.findings)
+    for e in range(E):
+        ax = axes[e, 0]
+        m = problem.mask[e]
+        ax.plot(t[e][m], problem.T[e][m], lw=0.6, color="0.4", label="measured")
+        ax.plot(t[e][m], d.baseline.heldout[e][m], lw=0.8, color="C3", label="eq. 9, held out")
+        if d.findings:
+            ax.plot(t[e][m], d.final.heldout[e][m], lw=0.8, color="C2", label=f"eq. 9 + {names}, held out")
+        ax.set_ylabel("friction torque (N·m)")
+        ax.set_title(problem.files[e], fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("time (s)")
+    fig.suptitle("cross-validated predictions (each sample predicted by the fold that held it out)", fontsize=9)
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=110)
+    plt.close(fig)
+    return pathlib.Path(path)
