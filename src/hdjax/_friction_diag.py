@@ -157,7 +157,9 @@ def applicable(problem: FrictionProblem) -> dict[str, str | None]:
         "position_dependent_torque": why_pos,
         "presliding_friction": None if rev >= MIN_REVERSALS else
         f"only {rev} velocity reversals (need {MIN_REVERSALS}): presliding memory shows only where velocity changes sign",
-        "thermal_drift": None,
+        "thermal_drift": None if problem.E == 1 or np.ptp(np.asarray(problem.data.start_time)) > 0 else
+        "every record starts at the same session time (no `start_time` spread): a drift over the session "
+        "cannot be told from a transient that every record shares",
     }
 
 

@@ -30,6 +30,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import scipy.signal
 
 from ._data import FrictionExperiment
@@ -40,6 +41,7 @@ from ._friction import (
     FrictionStructure,
     friction_model_torque,
 )
+from ._lm import MarquardtLM
 from ._model import Smoothing
 
 M = MAX_ORDERS
@@ -54,6 +56,7 @@ I_LTAU = I_LDELTA + 2
 N_PARAMS = I_LTAU + 1
 LOG_INDICES = (I_LTSS2, I_LDELTA, I_LTAU)
 MIN_DIRECTION_SAMPLES = 50
+DENSE_BELOW = 10.0  # velocity scales below which every sample enters the fit (`FrictionProblem.index`)
 MIN_DIRECTION_FRACTION = 0.02
 TIE_NONE, TIE_NEG_TO_POS, TIE_POS_TO_NEG = 0, 1, 2
 RTOL, ATOL, XTOL = 1e-10, 1e-14, 1e-9  # LM stopping: relative / absolute cost change, relative step
@@ -138,62 +141,22 @@ def _residual(x, x0, free, w, tie, data, structure, scale, sigma, smoothing, ind
 
 @eqx.filter_jit
 def _solve(x0, free, w, tie, data, structure, scale, sigma, smoothing, index, max_steps):
-    """Levenberg–Marquardt for one row: materialised forward-mode Jacobian, damped normal
-    equations, Nielsen's damping update; stops when a step changes the cost by less than
-    `RTOL` relative or the step is below `XTOL`. Parameters that are not free are held at `x0`.
+    """One row's fit: `optx.least_squares` with `MarquardtLM` (`hdjax._lm`: Marquardt-scaled
+    normal equations, a materialised forward-mode Jacobian, one model evaluation per step), which
+    on these small problems is far cheaper per step than `optimistix.LevenbergMarquardt` (a
+    6 000-sample record: residual 0.06 ms, 22-column Jacobian 0.5 ms, an optimistix LM step
+    15 ms); stops at a relative cost change below `RTOL` or a step below `XTOL`. Parameters that
+    are not free are held at `x0` (their Jacobian columns are zero). Returns (x, converged, steps).
 
-    Hand-written rather than `optimistix.LevenbergMarquardt`: on a 6 000-sample friction record
-    the residual costs 0.06 ms and its 22-column Jacobian 0.5 ms, but an optimistix LM step
-    (linearise, `FunctionLinearOperator`, materialise) took 15 ms on this CPU; the diagnosis
-    runs hundreds of these fits. A Python loop over rows beat `vmap` (a vmapped while-loop runs
-    every row for the slowest)."""
+    The rows are fitted one after the other (a Python loop): a `vmap`ped while-loop would run
+    every row for as long as the slowest."""
 
-    def resid(x):
-        r = _residual(x, x0, free, w, tie, data, structure, scale, sigma, smoothing, index)
-        return r, r
+    def residuals(x, args):
+        return _residual(x, x0, free, w, tie, data, structure, scale, sigma, smoothing, index)
 
-    def lin(x):
-        J, r = jax.jacfwd(resid, has_aux=True)(x)
-        return r, jnp.where(free[None, :], J, 0.0)
-
-    fixed = jnp.where(free, 0.0, 1.0)
-    n_res = jax.eval_shape(resid, x0)[0].shape[0]
-
-    def propose(r, J, lam):
-        A = J.T @ J
-        g = J.T @ r
-        d = jnp.maximum(jnp.diag(A), 1e-12) * (1.0 - fixed) + fixed
-        dx = -jnp.linalg.solve(A + lam * jnp.diag(d) + jnp.diag(fixed), g) * (1.0 - fixed)
-        return dx, -(dx @ g) - 0.5 * dx @ (A @ dx)
-
-    def cond(c):
-        return (c["step"] < max_steps) & ~c["done"]
-
-    def body(c):
-        # one linearisation per iteration (at the trial point), so the model appears once in the
-        # compiled loop; the first iteration evaluates the start point and always accepts it
-        x, r, J, lam, nu, dx = c["x"], c["r"], c["J"], c["lam"], c["nu"], c["dx"]
-        first = c["step"] == 0
-        r_new, J_new = lin(x + dx)
-        cost = jnp.where(first, jnp.inf, 0.5 * r @ r)
-        cost_new = 0.5 * r_new @ r_new
-        rho = (cost - cost_new) / jnp.maximum(c["predicted"], 1e-300)
-        ok = first | (jnp.isfinite(cost_new) & (rho > 1e-4))
-        small = ~first & ok & ((jnp.abs(cost - cost_new) <= RTOL * cost + ATOL)
-                               | (jnp.linalg.norm(dx) <= XTOL * (jnp.linalg.norm(x) + XTOL)))
-        lam = jnp.where(first, lam, jnp.where(ok, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), lam * nu))
-        nu = jnp.where(ok, 2.0, 2.0 * nu)
-        x, r, J = jnp.where(ok, x + dx, x), jnp.where(ok, r_new, r), jnp.where(ok, J_new, J)
-        dx, predicted = propose(r, J, lam)
-        return {"x": x, "r": r, "J": J, "lam": lam, "nu": nu, "dx": dx, "predicted": predicted,
-                "step": c["step"] + 1, "done": small | (lam > 1e12)}
-
-    z = jnp.zeros_like(x0)
-    init = {"x": x0, "r": jnp.zeros(n_res), "J": jnp.zeros((n_res, x0.size)), "lam": jnp.asarray(1e-3),
-            "nu": jnp.asarray(2.0), "dx": z, "predicted": jnp.asarray(1.0), "step": jnp.asarray(0),
-            "done": jnp.asarray(False)}
-    out = jax.lax.while_loop(cond, body, init)
-    return out["x"], out["done"], out["step"]
+    sol = optx.least_squares(residuals, MarquardtLM(rtol=RTOL, atol=ATOL, xtol=XTOL), x0, None,
+                             max_steps=max_steps, throw=False)
+    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
 
 @eqx.filter_jit
@@ -242,6 +205,13 @@ class FrictionProblem:
     `max_fit_samples`: the LM residual uses every `stride`-th sample so that at most this many
     enter a fit (the model, and the presliding state, still run through every sample; held-out
     errors use every sample). Neighbouring samples at 0.3–2 ms carry nearly the same information.
+    Every sample slower than `DENSE_BELOW` velocity scales enters as well, weighted as itself
+    while a strided sample stands for `stride` (`sample_weight`), so the fit's cost stays an
+    estimate of the whole record's. With the stride alone, a Stribeck peak narrower than the
+    velocity step between fitted samples could hide between them (Kinova joint 7, 2026-11-26:
+    Tss2 fell to 6e-4 and 1e-131 rad/s, and eq. 9's whole-record RMS came out up to 1.8× that of
+    its special case Coulomb + viscous, with 194 N·m errors at samples the fit did not see).
+    A fit that ends worse than its start on every training sample keeps its start (`solve`).
     """
 
     experiments: list
@@ -273,7 +243,17 @@ class FrictionProblem:
         self.E, self.N = self.mask.shape
         self.fs = sample_rates(self.data)
         self.stride = max(1, -(-self.E * self.N // int(self.max_fit_samples)))
-        self.index = jnp.arange(0, self.N, self.stride)
+        # every `stride`-th sample, and every sample where a record moves slower than
+        # `DENSE_BELOW` velocity scales: a Stribeck peak no wider than that cannot hide between
+        # the strided samples (see the class docstring)
+        slow = (np.abs(self.v) < DENSE_BELOW * self.smoothing.velocity_scale) & self.mask
+        strided = np.zeros(self.N, bool)
+        strided[:: self.stride] = True
+        self.index = jnp.asarray(np.flatnonzero(strided | slow.any(0)))
+        # how many samples of the record each fitted sample stands for, so that the fit's cost
+        # stays an estimate of the whole record's (a slow sample for itself, a strided one for
+        # `stride`, one taken only for another record's sake for none); multiplies the row weights
+        self.sample_weight = np.where(slow, 1.0, np.where(strided[None, :], float(self.stride), 0.0))
 
     # ---------------------------------------------------------------- rows
     def _split(self, frac):
@@ -397,13 +377,22 @@ class FrictionProblem:
             if not rows.valid[b]:  # placeholder row (one experiment: no leave-one-out fold)
                 xs.append(xs[0]), oks.append(oks[0]), steps.append(0), preds.append(preds[0])
                 continue
-            x, ok, n = _solve(jnp.asarray(x0[b]), jnp.asarray(free[b]), jnp.asarray(rows.train[b]),
+            x, ok, n = _solve(jnp.asarray(x0[b]), jnp.asarray(free[b]), jnp.asarray(rows.train[b] * self.sample_weight),
                               jnp.asarray(tie[b]), self.data, structures[b], self.scale, self.sigma, self.smoothing,
                               self.index, self.max_steps)
-            xs.append(np.asarray(x)), oks.append(bool(ok)), steps.append(int(n))
-            preds.append(self.predict_row(xs[-1], int(tie[b]), structures[b]))
+            x, pred = np.asarray(x), self.predict_row(np.asarray(x), int(tie[b]), structures[b])
+            # the fit sees a subsample: keep the start if the result is worse on every training sample
+            pred0 = self.predict_row(np.asarray(x0[b]), int(tie[b]), structures[b])
+            if self._sse(pred0, rows.train[b]) < self._sse(pred, rows.train[b]):
+                x, pred = np.asarray(x0[b], dtype=float), pred0
+            xs.append(x), oks.append(bool(ok)), steps.append(int(n)), preds.append(pred)
         return RowFit(np.stack(xs), np.asarray(tie), np.asarray(free), np.asarray(oks), np.asarray(steps),
                       np.stack(preds), structures[0], list(structures))
+
+    def _sse(self, pred: np.ndarray, w: np.ndarray) -> float:
+        """Weighted sum of squared errors (N·m²) of a prediction over every sample of weight `w`."""
+        on = self.mask & (w > 0)
+        return float(np.sum((w * (pred - self.T) ** 2)[on]))
 
     def predict_row(self, x: np.ndarray, tie: int, structure: FrictionStructure) -> np.ndarray:
         """Model torque (N·m) of one normalised vector on every sample, shape (experiment, time)."""

@@ -1,0 +1,48 @@
+"""`hdjax._lm.MarquardtLM`, the friction fits' least-squares solver, as an optimistix solver value."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from hdjax._lm import MarquardtLM
+
+jax.config.update("jax_enable_x64", True)
+
+
+def _decay_residuals(y, args):
+    """Fit a·exp(−t/τ) + c (τ through its logarithm) to noisy data; badly scaled on purpose."""
+    t, data = args
+    a, log_tau, c = y
+    return a * jnp.exp(-t / jnp.exp(log_tau)) + c - data
+
+
+def _data():
+    rng = np.random.default_rng(0)
+    t = jnp.linspace(0.0, 5.0, 400)
+    return t, 300.0 * jnp.exp(-t / 0.7) + 2.0 + jnp.asarray(rng.normal(size=t.size))
+
+
+def test_reaches_the_optimum_of_optimistix_levenberg_marquardt():
+    args = _data()
+    y0 = jnp.array([100.0, 0.0, 0.0])
+    ours = optx.least_squares(_decay_residuals, MarquardtLM(), y0, args, max_steps=200)
+    ref = optx.least_squares(_decay_residuals, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), y0, args,
+                             max_steps=2000)
+    assert ours.result == optx.RESULTS.successful
+    cost = lambda y: float(jnp.sum(_decay_residuals(y, args) ** 2))  # noqa: E731
+    assert cost(ours.value) <= cost(ref.value) * (1 + 1e-9)
+    np.testing.assert_allclose(ours.value, ref.value, rtol=1e-6, atol=1e-8)
+
+
+def test_zero_jacobian_columns_stay_put_and_max_steps_is_reported():
+    args = _data()
+
+    def held(y, args):  # the third parameter is held at its start through jnp.where, as the friction fits do
+        return _decay_residuals(jnp.where(jnp.array([True, True, False]), y, jnp.array([0.0, 0.0, 2.0])), args)
+
+    y0 = jnp.array([100.0, 0.0, 7.0])
+    sol = optx.least_squares(held, MarquardtLM(), y0, args, max_steps=200)
+    assert sol.result == optx.RESULTS.successful and float(sol.value[2]) == 7.0
+    short = optx.least_squares(held, MarquardtLM(), y0, args, max_steps=2, throw=False)
+    assert short.result == optx.RESULTS.nonlinear_max_steps_reached
