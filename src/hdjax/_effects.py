@@ -40,6 +40,7 @@ from jaxtyping import Array, Float
 from ._smooth import smooth_sign
 
 MAX_ORDER = 8
+THERMAL_TAU = 600.0  # s: default time constant of `thermal_drift` (the lubricant's warm-up), shared by every path
 PERIODIC = ("kinematic_error", "torque_sensor_ripple", "cogging", "position_dependent_friction")
 SCALAR = {
     "nonlinear_stiffness": ("K3",),
@@ -93,7 +94,7 @@ class Effects(eqx.Module):
     backlash: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     mu: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     beta: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
-    tau: Float[Array, ""] = eqx.field(default=300.0, converter=_as_float)
+    tau: Float[Array, ""] = eqx.field(default=THERMAL_TAU, converter=_as_float)
     delay: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     Th: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     sigma: Float[Array, ""] = eqx.field(default=1e-4, converter=_as_float)

@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from ._effects import THERMAL_TAU
 from ._model import PARAMETER_UNITS, Smoothing, _as_float
 from ._smooth import smooth_sign, smooth_step
 
@@ -75,7 +76,7 @@ class FrictionParameters(eqx.Module):
     torque_cos: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
     presliding_distance: Float[Array, ""] = eqx.field(converter=_as_float, default=1e-3)
     thermal_beta: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
-    thermal_tau: Float[Array, ""] = eqx.field(converter=_as_float, default=600.0)
+    thermal_tau: Float[Array, ""] = eqx.field(converter=_as_float, default=THERMAL_TAU)
 
     def eq9(self) -> dict[str, float]:
         """The seven eq. 9 values as Python floats."""

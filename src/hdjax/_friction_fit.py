@@ -34,6 +34,7 @@ import optimistix as optx
 import scipy.signal
 
 from ._data import FrictionExperiment
+from ._effects import THERMAL_TAU
 from ._friction import (
     FRICTION_NAMES,
     MAX_ORDERS,
@@ -364,7 +365,7 @@ class FrictionProblem:
         x = np.zeros(N_PARAMS)
         x[:7] = x_best
         x[:6] /= np.asarray(self.scale)[:6]
-        x[I_LDELTA], x[I_LTAU] = np.log(1e-3), np.log(600.0)
+        x[I_LDELTA], x[I_LTAU] = np.log(1e-3), np.log(THERMAL_TAU)
         return x
 
     # ---------------------------------------------------------------- fitting

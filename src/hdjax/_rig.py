@@ -40,7 +40,7 @@ import equinox as eqx
 import numpy as np
 
 from ._data import write_dataset
-from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR, Effects
+from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR, THERMAL_TAU, Effects
 from ._experiment import Experiment, make_experiment, stack_experiments
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
 from ._plant import Simulator, simulate_batch
@@ -776,7 +776,7 @@ def hide_effect(
     if name == "load_dependent_friction":
         return _with_values(base, name, mu=a)
     if name == "thermal_drift":
-        return _with_values(base, name, beta=a, tau=600.0 if tau is None else float(tau))
+        return _with_values(base, name, beta=a, tau=THERMAL_TAU if tau is None else float(tau))
     if name == "input_delay":
         return _with_values(base, name, delay=a)
     if name == "rate_independent_hysteresis":
