@@ -611,7 +611,8 @@ def tune_gains(
     starts = list(start) if isinstance(start, (list, tuple)) else [start]
     solver = optx.BFGS(rtol=rtol, atol=atol)
     fn = lambda theta, args: (cost_fn(scaling.gains(_clip_gradient(theta, max_gradient))) / cost_scale, None)  # noqa: E731
-    f_struct = jax.ShapeDtypeStruct((), jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    x64 = jax.config.jax_enable_x64  # pyright: ignore[reportAttributeAccessIssue]  jax.config options are dynamic attributes
+    f_struct = jax.ShapeDtypeStruct((), jnp.float64 if x64 else jnp.float32)
     init = eqx.filter_jit(lambda th: solver.init(fn, th, None, {}, f_struct, None, frozenset()))
     step = eqx.filter_jit(lambda th, st: solver.step(fn, th, None, {}, st, frozenset()))
     terminate = eqx.filter_jit(lambda th, st: solver.terminate(fn, th, None, {}, st, frozenset()))

@@ -342,7 +342,7 @@ def _dataset_yaml_path(folder_or_yaml) -> pathlib.Path:
     return p.resolve()
 
 
-def _drive_number(doc: _Map, key: str, yaml_path, *, required: bool, positive: bool, why: str) -> float | None:
+def _drive_number(doc: dict, key: str, yaml_path, *, required: bool, positive: bool, why: str) -> float | None:
     unit = {"gear_ratio": "N, -", "torque_constant": "Km, N·m/A", "load_inertia": "Jload, kg·m²"}[key]
     drive = doc["drive"]
     if key not in drive:
@@ -367,7 +367,7 @@ def _drive_number(doc: _Map, key: str, yaml_path, *, required: bool, positive: b
     return float(v)
 
 
-def _parse_drive(doc: _Map, yaml_path, modes: list[str]) -> Drive | None:
+def _parse_drive(doc: dict, yaml_path, modes: list[str]) -> Drive | None:
     dynamic = [m for m in modes if m in ("constrained", "free")]
     if "drive" not in doc or doc["drive"] is None:
         if dynamic:
@@ -629,6 +629,7 @@ def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
             header = None
+            header_line = 0  # set with `header`
             rows: list[list[str]] = []
             lines: list[int] = []
             for row in reader:
@@ -643,7 +644,9 @@ def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
     except UnicodeDecodeError as e:
         raise _error(path, None, f"not UTF-8 text ({e})", "Save the CSV as UTF-8 (or plain ASCII).") from None
     except csv.Error as e:
-        raise _error(path, f"line {reader.line_num}", f"malformed CSV ({e})", "Fix the quoting on that line.") from None
+        # csv.Error comes only from reading rows, so `reader` is bound
+        line = f"line {reader.line_num}"  # pyright: ignore[reportPossiblyUnboundVariable]
+        raise _error(path, line, f"malformed CSV ({e})", "Fix the quoting on that line.") from None
     except OSError as e:
         raise _error(path, None, f"cannot be read ({e})", "Check the file's permissions.") from None
 
@@ -953,7 +956,7 @@ def write_dataset(
                 f"mode {mode!r} needs a {want.__name__}, got {type(exp).__name__}",
                 "Pass matching experiments and modes.",
             )
-        if mode != "friction" and (float(exp.free) == 1.0) != (mode == "free"):
+        if mode != "friction" and isinstance(exp, Experiment) and (float(exp.free) == 1.0) != (mode == "free"):
             raise _error(
                 yaml_path,
                 f"`modes[{i}]`",
@@ -1014,7 +1017,7 @@ def write_dataset(
         _check_time(path, cols["time"], list(range(2, len(cols["time"]) + 2)))
         _atomic_write(path, _csv_text(cols, digits))
         start = float(exp.start_time) if start_times is None else float(start_times[i])
-        entry = {"file": file, "mode": mode}
+        entry: dict[str, Any] = {"file": file, "mode": mode}
         if start != 0.0:
             entry["start_time"] = start
         entries.append(entry)

@@ -777,7 +777,7 @@ def diagnose(
                     mode_dchi = {md: float(np.sum(d[modes == md])) for md in mode_gains}
                     # consistency over records: most held-out experiments of the mode where it acts
                     # must improve (misfit that one term absorbs in a few records is no finding)
-                    acting = max(mode_gains, key=mode_gains.get)
+                    acting = max(mode_gains, key=mode_gains.__getitem__)
                     improved = float(np.mean(d[modes == acting] > 0))
                     s.update(simulated=True, gain=float(gain), fold_gains=(1 - sse_after / sse_before).tolist(), delta_chi2=dchi,
                              delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
@@ -1223,7 +1223,7 @@ def covariate_drifts(per_experiment: dict, experiments: list[Experiment], *, max
             c = np.asarray(c)[ok]
             if np.ptp(c) == 0 or np.ptp(v[ok]) == 0:
                 continue
-            rho, p = stats.spearmanr(c, v[ok])
+            rho, p = map(float, stats.spearmanr(c, v[ok]))
             item = {"parameter": name, "covariate": cname, "spearman_rho": float(rho), "p_value": float(p),
                     "n": int(ok.sum())}
             if p < max_p and (name, cname) in _DRIFT_HINTS:

@@ -66,12 +66,13 @@ def _zeros():
     return np.zeros(MAX_ORDER)
 
 
-def _as_float(x):
+def _as_float(x) -> Array:
     # numbers become numpy arrays, so that building an `Effects` (a default argument at import)
     # does not start JAX's backends: `hdjax._sharding.use_host_devices` must run before that
     if isinstance(x, jax.Array):
         return jnp.asarray(x, dtype=float)
-    return np.asarray(x, dtype=np.float64 if jax.config.jax_enable_x64 else np.float32)
+    # the numpy array stands in for the field's `Array`; jax.config options are dynamic attributes
+    return np.asarray(x, dtype=np.float64 if jax.config.jax_enable_x64 else np.float32)  # pyright: ignore[reportReturnType, reportAttributeAccessIssue]
 
 
 class Effects(eqx.Module):

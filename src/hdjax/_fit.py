@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
+from numpy.typing import ArrayLike
 
 from ._effects import Effects
 from ._experiment import Experiment
@@ -95,7 +96,7 @@ def make_parameter_map(p0: Parameters, free) -> ParameterMap:
     return ParameterMap(free=free, scale=scale)
 
 
-def white_noise_level(x) -> float:
+def white_noise_level(x: ArrayLike) -> float:
     """White-noise std of a sampled signal: the second difference of a smooth signal plus white
     noise of std σ has std $\\sqrt6\\,\\sigma$."""
     return float(np.std(np.diff(np.asarray(x), 2)) / np.sqrt(6.0))
@@ -316,16 +317,17 @@ class CostStop(optx.AbstractLeastSquaresSolver):
     step through `jax.debug.callback` (progress display, `hdjax._progress.lm_progress`); None
     compiles nothing in."""
 
+    # equinox lets a property implement an `AbstractVar`; pyright takes them for dataclass fields
     @property
-    def rtol(self):
+    def rtol(self):  # pyright: ignore[reportIncompatibleVariableOverride]
         return self.inner.rtol
 
     @property
-    def atol(self):
+    def atol(self):  # pyright: ignore[reportIncompatibleVariableOverride]
         return self.inner.atol
 
     @property
-    def norm(self):
+    def norm(self):  # pyright: ignore[reportIncompatibleMethodOverride]
         return self.inner.norm
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
@@ -621,7 +623,7 @@ def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rto
         return r.reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
-    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol, callback=_relay_lm if progress else None)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol, callback=_relay_lm if progress else None)  # pyright: ignore[reportCallIssue]  rtol/atol/norm are properties
 
     # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which
     # XLA would try to constant-fold)
@@ -652,7 +654,7 @@ def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol,
         return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
-    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)  # pyright: ignore[reportCallIssue]  rtol/atol/norm are properties
 
     @eqx.filter_jit
     def run(z, args):

@@ -259,7 +259,7 @@ def run_fit(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     doc = {"schema": "hdjax.fit/1", "dataset": dataset.name, "mode": "friction",
            **{k: v for k, v in s.items() if not k.startswith("_")},
            "timing_s": {"total": time.time() - t0}}
-    model = doc["fit"]["model"]
+    model: str = doc["fit"]["model"]
     label = {"eq9": "eq. 9", "coulomb_viscous": "Coulomb + viscous"}.get(model, model)
     hfit = s.get("_heldout_fit")
     if hfit is None:  # low-speed law: one pooled held-out prediction serves every panel

@@ -111,7 +111,7 @@ def dahl_state_np(v, t, delta, sc):
     target = np.tanh(v / sc)
     delta = np.asarray(delta)[..., None, None]
     a = np.exp(-np.abs(v) * h / delta)
-    s = np.empty(np.broadcast_shapes(a.shape, target.shape))
+    s: np.ndarray = np.empty(np.broadcast_shapes(a.shape, target.shape))
     s[..., 0] = target[..., 0]
     for n in range(1, s.shape[-1]):
         s[..., n] = a[..., n] * s[..., n - 1] + (1 - a[..., n]) * target[..., n]
@@ -181,7 +181,7 @@ def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: 
         else:
             g = np.ones_like(v)
         orders, coef = choose_orders(problem, theta, r, g, on, max_order=max_order)
-        if not orders:
+        if coef is None:  # no order kept (`coef` is None exactly when `orders` is empty)
             orders, coef = [1], _lstsq_gain(np.stack([g[on] * np.sin(theta[on]), g[on] * np.cos(theta[on])], 1), r[on])[0]
         o = np.zeros(MAX_ORDERS)
         o[: len(orders)] = orders

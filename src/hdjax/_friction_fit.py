@@ -25,6 +25,7 @@ by that factor.
 """
 
 import dataclasses
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -479,7 +480,7 @@ def filtered_rms(residual, fs: float, cutoff_hz: float = LOWPASS_HZ, order: int 
     r = np.asarray(residual, dtype=float)
     if r.size < 3 or not cutoff_hz < 0.5 * fs:
         return float("nan")
-    b, a = scipy.signal.butter(order, cutoff_hz / (0.5 * fs))
+    b, a = cast(tuple[np.ndarray, np.ndarray], scipy.signal.butter(order, cutoff_hz / (0.5 * fs)))  # output="ba"
     return float(np.sqrt(np.mean(matlab_filtfilt(b, a, r) ** 2)))
 
 
@@ -492,7 +493,7 @@ def sample_rates(data: FrictionExperiment) -> np.ndarray:
 
 def _runs(on: np.ndarray) -> list[tuple[int, int]]:
     d = np.diff(np.concatenate([[0], on.astype(int), [0]]))
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+    return [(int(i), int(j)) for i, j in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]
 
 
 def lowpass_sq_sum(err: np.ndarray, on: np.ndarray, fs, cutoff_hz: float = LOWPASS_HZ,

@@ -153,7 +153,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     full = stack_experiments(exps)
     if opts["trajectory"]["per_experiment"]:
         mask = np.array([[np.isfinite(paper.per_experiment[k][j]) for k in res.free] for j in range(len(exps))], dtype=bool)
-        informed = mask.any(axis=1)
+        informed = np.any(mask, axis=1)
         if informed.any():
             log(f"[2b/4] per-experiment trajectory-error fits ({int(informed.sum())} experiments, one JIT)")
             t0 = time.time()
@@ -209,7 +209,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     params_json = {}
     for k in PARAMETER_NAMES:
         traj_per = per_fit.per_experiment(k) if per_fit is not None and k in per_fit.free else None
-        traj_cons = per_fit.consistency(k) if traj_per is not None else None
+        traj_cons = per_fit.consistency(k) if per_fit is not None and traj_per is not None else None
         entry = {
             "value": float(getattr(res.params, k)),
             "unit": PARAMETER_UNITS[k],
@@ -217,12 +217,12 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
             # the trajectory method's own consistency where per-experiment fits ran, else the paper's
             "consistency": _finite_or_none(traj_cons) if traj_per is not None else _finite_or_none(paper.consistency.get(k)),
             "consistency_method": "trajectory" if traj_per is not None else "paper",
-            "per_experiment": [_finite_or_none(v) for v in (traj_per if traj_per is not None else paper.per_experiment.get(k))],
+            "per_experiment": [_finite_or_none(v) for v in (traj_per if traj_per is not None else paper.per_experiment[k])],
             "fitted": k in res.free,
             "paper_method": {
                 "value": _finite_or_none(paper.estimates.get(k)),
                 "consistency": _finite_or_none(paper.consistency.get(k)),
-                "per_experiment": [_finite_or_none(v) for v in paper.per_experiment.get(k)],
+                "per_experiment": [_finite_or_none(v) for v in paper.per_experiment[k]],
             },
         }
         if k in undetermined:

@@ -34,7 +34,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 
 class _MarquardtState(eqx.Module):
-    f_info: optx.FunctionInfo.ResidualJac  # residual and Jacobian at the accepted y
+    f_info: optx.FunctionInfo.ResidualJac  # pyright: ignore[reportInvalidTypeForm]  a ClassVar alias of the class; residual and Jacobian at the accepted y
     trial: Float[Array, " param"]  # step to try next
     predicted: Float[Array, ""]  # the linear model's predicted decrease of ½‖r‖² for `trial`
     damping: Float[Array, ""]

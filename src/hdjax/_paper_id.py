@@ -48,6 +48,7 @@ it on.
 
 import dataclasses
 import math
+from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -134,7 +135,7 @@ class PaperIdentification:
     def to_dict(self) -> dict:
         """A JSON-ready copy (NaN written as None)."""
 
-        def clean(x):
+        def clean(x) -> Any:
             if isinstance(x, dict):
                 return {k: clean(v) for k, v in x.items()}
             if isinstance(x, (list, tuple)):
@@ -167,7 +168,7 @@ class _Prepared(eqx.Module):
 
 
 def _lowpass(x: np.ndarray, fs: float, cutoff_hz: float, order: int) -> np.ndarray:
-    b, a = scipy.signal.butter(order, cutoff_hz / (0.5 * fs))
+    b, a = cast(tuple[np.ndarray, np.ndarray], scipy.signal.butter(order, cutoff_hz / (0.5 * fs)))  # output="ba"
     padlen = min(3 * max(len(a), len(b)), len(x) - 1)
     return scipy.signal.filtfilt(b, a, x, padlen=padlen)
 
@@ -423,7 +424,7 @@ def identify_paper(
         raise ValueError(f"`identify_paper`: alpha={alpha} must lie inside alpha_bounds={alpha_bounds}.")
     if Tss2 <= 0:
         raise ValueError(f"`identify_paper`: Tss2 must be positive (rad/s), got {Tss2}.")
-    if not jax.config.jax_enable_x64:
+    if not jax.config.jax_enable_x64:  # pyright: ignore[reportAttributeAccessIssue]  jax.config options are dynamic attributes
         notes.append(
             "float64 is off (jax_enable_x64): the regressions ran in float32 and may be inaccurate; "
             'call jax.config.update("jax_enable_x64", True) first.'
@@ -459,6 +460,7 @@ def identify_paper(
             "record locked-output runs with a torque excursion of a good fraction of the rated torque."
         )
     else:
+        assert prepared is not None  # None only without experiments, when every index list is empty
         sub = _take(prepared, constrained_idx)
         K1, Tst, c, lam = (np.asarray(x) for x in _compliance_linear(sub, alpha))
         for j, k in enumerate(constrained_idx):
@@ -509,6 +511,7 @@ def identify_paper(
             f"runs at |ω| > {threshold:.3g} rad/s in both directions."
         )
     else:
+        assert prepared is not None  # None only without experiments, when every index list is empty
         sub = _take(prepared, free_idx)
         theta, active, lam, npos, nneg = (
             np.asarray(x) for x in _friction_high(sub, Tss2, threshold, min_samples, smoothing)
@@ -565,6 +568,7 @@ def identify_paper(
         if not neg_ok:
             notes.append("Tssn1 undetermined: Tvn/Tsn (negative direction) were not identified.")
         fixed_arr = jnp.asarray([fixed[n] if math.isfinite(fixed[n]) else 0.0 for n in HIGH_VELOCITY_NAMES])
+        assert prepared is not None  # None only without experiments, when every index list is empty
         sub = _take(prepared, low_idx)
         theta, active, lam, npos, nneg = (
             np.asarray(x)

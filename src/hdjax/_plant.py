@@ -72,7 +72,8 @@ class Simulator(eqx.Module):
 
     **Arguments:**
 
-    - `solver`: diffrax solver; default `Rodas3()` (linearly implicit, see `hdjax._solver`).
+    - `solver`: diffrax solver, or `VelocityImplicit()` (`hdjax._stepper`); default `Rodas3()` (linearly
+      implicit, see `hdjax._solver`).
     - `rtol`, `atol`: PID step-size controller tolerances (atol on states in SI units).
     - `step_to_samples`: clip steps to the sample instants (kinks of the interpolated current).
     - `adjoint`: `ForwardMode()` by default, for LM Jacobians and `jacfwd` sensitivities; use
@@ -85,7 +86,7 @@ class Simulator(eqx.Module):
     - `initial_window`: samples used to estimate the initial state by a local linear fit.
     """
 
-    solver: dfx.AbstractSolver = Rodas3()
+    solver: dfx.AbstractSolver | VelocityImplicit = Rodas3()
     rtol: float = 1e-7
     atol: float = 1e-9
     step_to_samples: bool = True
@@ -217,7 +218,7 @@ def _low_speed_friction(p: Parameters, effects: Effects, smoothing: Smoothing):
     if "low_speed_friction" not in effects.active:
         return p, smoothing
     smoothing = Smoothing(
-        velocity_scale=smoothing.velocity_scale * jnp.exp(effects.friction_scale),
+        velocity_scale=smoothing.velocity_scale * jnp.exp(effects.friction_scale),  # pyright: ignore[reportArgumentType]  a traced scale is a valid leaf
         torsion_rate_scale=smoothing.torsion_rate_scale,
     )
     return eqx.tree_at(lambda q: q.Tss2, p, p.Tss2 * jnp.exp(effects.stribeck_scale)), smoothing
@@ -342,6 +343,7 @@ def simulate(
         throw=False,
     )
     ys = _at_sample_times(sol.ts, sol.ys, exp.time) if save_steps else sol.ys
+    assert ys is not None  # both SaveAt choices save states
     th_m, torsion, _, T = _outputs(p, drive, ys, geometry, effects, simulator.smoothing)
     return _measured(
         T, ys[1], th_m, ys[2], ys[3], torsion, dt, effects,

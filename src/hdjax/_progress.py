@@ -17,6 +17,7 @@ import pathlib
 import sys
 import threading
 import time
+from typing import Any
 
 _CURRENT: contextvars.ContextVar = contextvars.ContextVar("hdjax_runlog", default=None)
 
@@ -193,7 +194,7 @@ class RunLog:
         if task._id is None or self._progress is None:
             return
         with self._lock:
-            kw = {} if info is None else {"info": info}
+            kw: dict[str, Any] = {} if info is None else {"info": info}
             self._progress.update(task._id, completed=task.completed, total=task.total, **kw)
 
     def _remove(self, task: Task) -> None:

@@ -492,9 +492,10 @@ def campaign(
                 break
         # friction margin; multisines spend more time at low current, so they get more
         margin = 2.0 if kind == "multisine" else 1.0
-        amp = max(vpk * J / (Km * np.max(np.abs(u))) + margin * i_coulomb, (1.0 + margin) * i_coulomb)
-        info.update(amplitude=float(amp), target_peak_velocity=float(vpk))
-        free.append((kind, "high_velocity", ramp * amp * shape, info))
+        # u, info and shape are bound: the 200-try loop above always runs
+        amp = max(vpk * J / (Km * np.max(np.abs(u))) + margin * i_coulomb, (1.0 + margin) * i_coulomb)  # pyright: ignore[reportPossiblyUnboundVariable]
+        info.update(amplitude=float(amp), target_peak_velocity=float(vpk))  # pyright: ignore[reportPossiblyUnboundVariable]
+        free.append((kind, "high_velocity", ramp * amp * shape, info))  # pyright: ignore[reportPossiblyUnboundVariable]
 
     order = rng.permutation(len(free))  # interleave the regimes through the session
     for j, k in enumerate(order):
@@ -604,7 +605,8 @@ def run_campaign(
         simulator = Simulator(rtol=1e-8, atol=1e-10)
     profiles = list(profiles)
     starts = [k * float(spacing) for k in range(len(profiles))]
-    clean: list[dict | None] = [None] * len(profiles)
+    # every profile is constrained or free, so the loop below fills every slot
+    clean: list[dict[str, np.ndarray]] = [None] * len(profiles)  # pyright: ignore[reportAssignmentType]
     for mode in ("constrained", "free"):
         idx = [k for k, pr in enumerate(profiles) if pr.mode == mode]
         if not idx:
@@ -623,7 +625,7 @@ def run_campaign(
             for j in over:  # the experimenter turns the amplitude down and repeats the test
                 profiles[idx[j]] = profiles[idx[j]].scaled(0.9 * station.rated_torque / peaks[j])
         for j, k in enumerate(idx):
-            clean[k] = {f: v[j] for f, v in traj.items()}
+            clean[k] = {f: v[j] for f, v in traj.items()}  # pyright: ignore[reportPossiblyUnboundVariable]  the 5-try loop always runs
             clean[k]["current"] = np.asarray(profiles[k].current)
 
     rng = np.random.default_rng(seed)

@@ -349,6 +349,7 @@ def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: d
     from ._paper_id import identify_paper
 
     fo = fit_options(config)
+    assert dataset.drive is not None  # run_sensitivity checked it
     paper = identify_paper(exps, dataset.drive, alpha=fo["alpha"], Tss2=fo["Tss2"], cutoff_hz=fo["cutoff_hz"])
     src = {
         "kind": "paper_identification",
@@ -717,7 +718,8 @@ def _ablation_conclusions(changes, thr, p, drive, batch, modes) -> dict:
             differences.append(f"{label} also matters in free motion on these records ({why})")
     for key, label in (("K1_div10", "K1"), ("Tst_zero", "Tst")):
         if matters(key, "free") is False:
-            differences.append(f"{label} barely matters in free motion (RMS +{100 * inc(key, 'free'):.2g} %), as in the paper")
+            # `matters` is False only where the increase was measured, so `inc` is not None
+            differences.append(f"{label} barely matters in free motion (RMS +{100 * inc(key, 'free'):.2g} %), as in the paper")  # pyright: ignore[reportOperatorIssue]
     return {
         "paper": "Coulomb and viscous friction matter in free motion; K1 and Tst in constrained motion.",
         "free_motion_friction_reproduced": reproduced_free,
@@ -768,7 +770,7 @@ def _advice(F, F_e, ok, names, est, fs_est, files, modes, batch, p) -> dict:
         ranking[name] = [{"file": files[j], "mode": modes[j], "information": float(info[j, k])} for j in order]
     se = {k: v for k, v in fs_est["std_error"].items() if np.isfinite(v)}
     undetermined = [k for k, v in fs_est["std_error"].items() if not np.isfinite(v)]
-    worst = max(se, key=se.get) if se else None
+    worst = max(se, key=se.__getitem__) if se else None
     result = {"ranking": ranking, "undetermined": undetermined}
     if worst is None:
         return result
@@ -780,7 +782,7 @@ def _advice(F, F_e, ok, names, est, fs_est, files, modes, batch, p) -> dict:
 
     cand = [j for j in range(len(files)) if ok[j]]
     after = {j: se_with(F_e[j]) for j in cand}
-    best = min(after, key=after.get)
+    best = min(after, key=after.__getitem__)
     repeats = None
     for m in (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128):
         if se_with(F_e[best], m) <= 0.5 * se[worst]:

@@ -35,8 +35,10 @@ can read the result. (Tested here on one host with several CPU devices only.)
 """
 
 import os
+from typing import Any
 
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
@@ -142,9 +144,9 @@ def replicated(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, PartitionSpec())
 
 
-def is_concrete(batch: Experiment) -> bool:
-    """True when the batch holds concrete arrays (not tracers inside `jit`/`vmap`/`grad`), i.e. when
-    it can be padded and placed on devices."""
+def is_concrete(batch: Any) -> bool:
+    """True when the batch (an `Experiment`, or any PyTree) holds concrete arrays (not tracers inside
+    `jit`/`vmap`/`grad`), i.e. when it can be padded and placed on devices."""
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(batch))
 
 

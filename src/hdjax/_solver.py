@@ -91,8 +91,8 @@ class Rodas3(dfx.AbstractAdaptiveSolver):
         z1_hat = z0 + sum(b * k for b, k in zip(B_HAT, ks))
         y1 = unravel(z1[:-1])
         y_error = unravel((z1 - z1_hat)[:-1])
-        k0 = unravel(h * f(z0)[:-1])
-        k1 = unravel(h * f(z1)[:-1])
+        k0 = unravel(h * f(z0)[:-1])  # pyright: ignore[reportArgumentType]  h · Array is an Array (jax's __array_priority__)
+        k1 = unravel(h * f(z1)[:-1])  # pyright: ignore[reportArgumentType]  h · Array is an Array (jax's __array_priority__)
         dense_info = dict(y0=y0, y1=y1, k0=k0, k1=k1)
         return y1, y_error, dense_info, None, dfx.RESULTS.successful
 

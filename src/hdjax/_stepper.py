@@ -50,6 +50,7 @@ adapt), and $T_{ss2}$ is multiplied by e^`stribeck_scale`.
 """
 
 import functools
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -307,7 +308,7 @@ def implicit_trajectory(
         pdf = 1.0 + eff.periodic("position_dependent_friction", thm1)
         load = (jnp.abs(eff.mu) * jnp.sqrt(T1 * T1 + 1e-6) / N
                 if "load_dependent_friction" in eff.active else 0.0)
-        P = dict(
+        P: dict[str, Any] = dict(
             alpha=p.alpha, K1=p.K1, Tst=p.Tst, N=N, A=A, bh=bh, fh_J=fh_J,
             wm_hist=wm_hist, wo_hist=wo_hist, q_hist=q_hist, tor0=tor0, z0=z0,
             Tvp=p.Tvp, Tvn=p.Tvn, Tssp1=p.Tssp1, Tssn1=p.Tssn1, Tss2=p.Tss2, vc=vc,

@@ -46,6 +46,7 @@ import math
 import pathlib
 import time
 from types import SimpleNamespace
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -197,6 +198,7 @@ def _identified(dataset: Dataset, config: dict, opts: dict, out: pathlib.Path, l
 
         fo = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
         log("      no fit.json found: running the paper's identification (hdjax._paper_id) on the records")
+        assert dataset.drive is not None  # run_tune checked it
         paper = identify_paper([dataset.experiments[i] for i in dyn], dataset.drive, alpha=fo["alpha"], Tss2=fo["Tss2"],
                                cutoff_hz=fo["cutoff_hz"])
         params = paper.parameters().to_dict()
@@ -287,7 +289,7 @@ def _references(dataset: Dataset, drive, opts: dict, ts: float, nominal: Paramet
             width = max(width, rise)
             ref = doublet_reference(amp, width, duration=dur, sample_period=ts, start=0.02, rise=rise)
             return ref, {"width_s": width, "rise_s": rise}
-        return sine_reference(amp, hz, duration=dur, sample_period=ts, free=free), {}
+        return sine_reference(amp, hz, duration=dur, sample_period=ts, free=free), {}  # pyright: ignore[reportArgumentType]  sines have a frequency
 
     refs, info = [], []
     for name, amp0, free, hz0 in (
@@ -306,7 +308,7 @@ def _references(dataset: Dataset, drive, opts: dict, ts: float, nominal: Paramet
         row = {"name": name, "amplitude": float(amp), "requested_amplitude": float(amp0), "scale": float(s) if scale_on else 1.0,
                "feasible_scale": float(s), "feedforward_peak_over_limit": float(need), **extra}  # fmt: skip
         if hz0 is not None:
-            row.update(frequency_hz=float(hz), requested_frequency_hz=float(hz0))
+            row.update(frequency_hz=float(hz), requested_frequency_hz=float(hz0))  # pyright: ignore[reportArgumentType]  hz is None only with hz0
         if name == "locked_step":
             row["step"] = (0.02 + rise, dur)
         if name == "free_step":
@@ -446,7 +448,7 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
 
     log(f"[4/6] robust tuning: {opts['plants']} plant sets x {len(refs)} references (vmap) + Ms terms on {len(loop_labels)} linearised loops")
     plants = Plant(plant_sets, drive, effects)
-    kw = dict(controller=ctrl, scales=jnp.tile(scales, K), noise=noise_all, substeps=int(opts["substeps"]), smoothing=sm)
+    kw: dict[str, Any] = dict(controller=ctrl, scales=jnp.tile(scales, K), noise=noise_all, substeps=int(opts["substeps"]), smoothing=sm)
 
     def per_reference(x):  # (plant, K·reference) -> (plant, reference): mean over the noise realisations
         return x.reshape(x.shape[0], K, len(refs)).mean(axis=1)
@@ -561,12 +563,12 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
         rows_runs = []
         for tr_all, _ in trajs:
             tr = tr_all[name]
-            per_ref = {}
+            per_ref: dict[str, dict[str, Any]] = {}
             for j, info in enumerate(ref_info):
                 err = np.asarray(tr["reference"][j]) - np.asarray(tr["torque"][j])
                 cur = np.asarray(tr["current"][j])
                 tot, sat, unsat, fsat = _split_cost(err, np.asarray(tr["command_limited"][j]), ilim, info["amplitude"])
-                row = {
+                row: dict[str, Any] = {
                     "tracking_cost": tot,
                     "tracking_cost_saturated": sat,
                     "tracking_cost_unsaturated": unsat,
