@@ -46,3 +46,22 @@ def test_zero_jacobian_columns_stay_put_and_max_steps_is_reported():
     assert sol.result == optx.RESULTS.successful and float(sol.value[2]) == 7.0
     short = optx.least_squares(held, MarquardtLM(), y0, args, max_steps=2, throw=False)
     assert short.result == optx.RESULTS.nonlinear_max_steps_reached
+
+
+def test_composes_with_cost_stop_like_optimistix_levenberg_marquardt():
+    """`CostStop` (the trajectory fit's stopping rules) reads the inner state's `f_info` and
+    `num_steps`; with `MarquardtLM` inside it stops a jittery problem by its Gauss–Newton-step rule
+    at the optimum, and hands back the residual and Jacobian at the returned point."""
+    from hdjax._fit import CostStop, _final_residual_and_jacobian
+
+    A = jnp.array([[1.0, 0.2], [0.3, 2.0], [1.0, 1.0], [0.5, -1.0]])
+    b = A @ jnp.array([2.0, -1.0]) + jnp.array([0.01, -0.02, 0.015, -0.005])
+
+    def fn(y, _):  # jitter far under the noise, not differentiated (as an adaptive ODE solve's)
+        return A @ y - b + 1e-5 * jax.lax.stop_gradient(jnp.sin(1e7 * y).sum())
+
+    sol = optx.least_squares(fn, CostStop(MarquardtLM()), jnp.zeros(2), max_steps=40, throw=False)
+    assert sol.result == optx.RESULTS.successful and int(sol.state.reason) == 1  # Gauss–Newton step small
+    assert jnp.allclose(sol.value, jnp.linalg.lstsq(A, b)[0], atol=2e-3)
+    r, J = _final_residual_and_jacobian(sol)
+    assert jnp.allclose(r, fn(sol.value, None)) and jnp.allclose(J, A, atol=1e-2)

@@ -44,6 +44,7 @@ from ._friction import (
 )
 from ._friction_diag import diagnose_friction as diagnose_friction
 from ._friction_fit import FrictionProblem as FrictionProblem
+from ._lm import MarquardtLM as MarquardtLM
 from ._model import (
     PARAMETER_NAMES as PARAMETER_NAMES,
     PARAMETER_UNITS as PARAMETER_UNITS,

@@ -5,12 +5,11 @@ import pathlib
 import re
 import time
 
-import numpy as np
-
+from ._artifacts import effects_to_dict
 from ._config import section_options
 from ._data import Dataset
 from ._diagnose import covariate_drifts, diagnose
-from ._effects import EFFECT_NAMES, MODEL_FORM_NAMES, PERIODIC, SCALAR_FIELDS
+from ._effects import EFFECT_NAMES, MODEL_FORM_NAMES
 from ._io import atomic_write_json, atomic_write_text
 from ._paper_id import identify_paper
 from ._plant import Simulator
@@ -98,18 +97,6 @@ class DiagnosisProgress:
     def __exit__(self, *exc):
         self._close()
         return False
-
-
-def effects_to_dict(effects) -> dict:
-    """Plain-number description of active effects (periodic: orders, amplitudes, phases)."""
-    out = {}
-    for name in sorted(effects.active):
-        if name in PERIODIC:
-            k, a, ph = effects.amplitudes(name)
-            out[name] = {"orders": [int(x) for x in k], "amplitudes": np.asarray(a).tolist(), "phases": np.asarray(ph).tolist()}
-        else:
-            out[name] = {f: float(getattr(effects, f)) for f in SCALAR_FIELDS[name]}
-    return out
 
 
 def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> dict:

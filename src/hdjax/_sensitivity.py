@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._artifacts import fit_json_dataset, read_fit_json
 from ._config import section_options
 from ._data import Dataset
 from ._experiment import Experiment, stack_experiments
@@ -300,25 +301,6 @@ def _select(modes: list[str], max_n: int) -> list[int]:
     return sorted(_spread(cons, n_c) + _spread(free, max_n - n_c))
 
 
-def _load_fit_json(path: pathlib.Path, dataset: Dataset) -> tuple[Parameters, dict, dict]:
-    import json
-
-    try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-        values = {k: float(d["parameters"][k]["value"]) for k in PARAMETER_NAMES}
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(
-            f"{path}: cannot read the parameter values from this fit.json ({type(e).__name__}: {e}); it needs "
-            f"`parameters.<name>.value` for all of {list(PARAMETER_NAMES)}. Re-run `python -m hdjax.fit` or "
-            "remove `sensitivity.fit_json` from the config."
-        ) from None
-    if not all(math.isfinite(v) for v in values.values()):
-        raise ValueError(f"{path}: a parameter value in this fit.json is not finite; re-run `python -m hdjax.fit`.")
-    consistency = {k: d["parameters"][k].get("consistency") for k in PARAMETER_NAMES}
-    per_exp = {k: d["parameters"][k].get("per_experiment") for k in PARAMETER_NAMES}
-    return Parameters.from_dict(values), consistency, per_exp
-
-
 def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: dict, exps, log):
     """(Parameters, source dict, consistency, per-experiment estimates, paper identification or None)."""
     candidates = []
@@ -334,17 +316,12 @@ def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: d
     for path, explicit in candidates:
         if not path.is_file():
             continue
-        import json
-
-        try:
-            name = json.loads(path.read_text(encoding="utf-8")).get("dataset")
-        except (OSError, ValueError):
-            name = None
+        name = fit_json_dataset(path)
         if not explicit and name != dataset.name:
             log(f"      ignoring {path}: it belongs to dataset {name!r}, not {dataset.name!r}")
             continue
-        p, cons, per = _load_fit_json(path, dataset)
-        return p, {"kind": "fit.json", "path": str(path)}, cons, per, None
+        fit = read_fit_json(path, setting="config `sensitivity.fit_json` / `--fit`")
+        return fit.parameters, {"kind": "fit.json", "path": str(path)}, fit.consistency, fit.per_experiment, None
     from ._identify import _options as fit_options
     from ._paper_id import identify_paper
 

@@ -41,7 +41,6 @@ Steps (all SI units):
    controller varied by up to 2x (stick–slip at the start of a free reference).
 """
 
-import json
 import math
 import pathlib
 import time
@@ -53,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _loopshape as ls
+from ._artifacts import read_extended_model, read_fit_json
 from ._config import section_options
 from ._control import (
     GAIN_NAMES,
@@ -73,7 +73,7 @@ from ._control import (
     ziegler_nichols_pi,
 )
 from ._data import Dataset
-from ._effects import PERIODIC, SCALAR_FIELDS, Effects
+from ._effects import Effects
 from ._io import atomic_write_json, atomic_write_text
 from ._model import EQ9_COEFFICIENTS, PARAMETER_NAMES, Parameters, Smoothing
 from ._progress import task
@@ -135,24 +135,6 @@ def _options(config: dict) -> dict:
     return out
 
 
-def effects_from_dict(d: dict | None) -> Effects:
-    """`Effects` from the plain-number description written in `truth.yaml` (`describe_effects`) or
-    `extended_model.json` (`effects_to_dict`): periodic effects as orders/amplitudes/phases of
-    `a_k·sin(k·θm + φ_k)`, scalar effects by their parameter names."""
-    eff = Effects()
-    for name, spec in (d or {}).items():
-        if name in PERIODIC:
-            for k, a, ph in zip(spec["orders"], spec["amplitudes"], spec["phases"]):
-                if a:
-                    eff = eff.with_periodic(name, int(k), float(a), float(ph))
-        elif name in SCALAR_FIELDS:
-            eff = eff.with_values(name, **{f: float(spec[f]) for f in SCALAR_FIELDS[name] if f in spec})
-        else:
-            raise ValueError(f"unknown effect {name!r} in an effects description; known: "
-                             f"{list(PERIODIC) + list(SCALAR_FIELDS)}.")
-    return eff
-
-
 def _find_fit(dataset: Dataset, opts: dict, out: pathlib.Path) -> pathlib.Path | None:
     if opts["fit"] is not None:
         p = pathlib.Path(opts["fit"]).expanduser()
@@ -173,23 +155,16 @@ def _identified(dataset: Dataset, config: dict, opts: dict, out: pathlib.Path, l
     dyn = dataset.dynamic_indices()
     path = _find_fit(dataset, opts, out)
     if path is not None:
-        try:
-            fit = json.loads(path.read_text())
-            params = {k: float(fit["parameters"][k]["value"]) for k in PARAMETER_NAMES}
-            per = {k: fit["parameters"][k].get("per_experiment") or [] for k in PARAMETER_NAMES}
-        except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
-            raise ValueError(
-                f"{path}: not a usable fit.json ({type(e).__name__}: {e}); it needs `parameters.<name>.value` for "
-                f"{list(PARAMETER_NAMES)}. Re-run `python -m hdjax.fit` to rewrite it."
-            ) from None
-        nl = (fit.get("fit") or {}).get("noise_levels") or {}
+        fit = read_fit_json(path, setting="config `tune.fit` / `--fit`")
+        params = fit.parameters.to_dict()
+        per = {k: v or [] for k, v in fit.per_experiment.items()}
+        nl = fit.noise_levels
         source = f"fit.json at {path}"
         effects = Effects()
         ext = path.parent / "extended_model.json"
         if ext.is_file():
-            em = json.loads(ext.read_text())
-            params = {k: float(em["parameters"][k]) for k in PARAMETER_NAMES}
-            effects = effects_from_dict(em.get("effects"))
+            p_ext, effects = read_extended_model(ext)
+            params = p_ext.to_dict()
             source += f" with the extended model {ext} (effects: {sorted(effects.active) or 'none'})"
         log(f"      identified plant from {source}")
     else:

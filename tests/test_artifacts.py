@@ -1,0 +1,69 @@
+"""The commands' JSON artifacts (`hdjax._artifacts`): fit.json and extended_model.json as
+`sensitivity` and `tune` read them, and the plain-number form of `Effects`."""
+
+import json
+
+import numpy as np
+import pytest
+
+from hdjax import Effects
+from hdjax._artifacts import effects_from_dict, effects_to_dict, fit_json_dataset, read_extended_model, read_fit_json
+from hdjax._model import PARAMETER_NAMES
+from helpers import hd2
+
+
+def _fit_doc(p, **extra):
+    doc = {"dataset": "hd2-bench", "parameters": {k: {"value": v, "consistency": 0.01, "per_experiment": [v, v]}
+                                                   for k, v in p.to_dict().items()},
+           "fit": {"noise_levels": {"torque": 0.5, "motor_velocity": 0.02}}}
+    doc.update(extra)
+    return doc
+
+
+def test_fit_json_is_read_with_its_consistency_and_noise_levels(tmp_path):
+    p, _ = hd2()
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps(_fit_doc(p)))
+    fit = read_fit_json(path, setting="config `tune.fit`")
+    assert fit.parameters.to_dict() == p.to_dict() and fit.dataset == "hd2-bench" == fit_json_dataset(path)
+    assert fit.consistency["K1"] == 0.01 and fit.per_experiment["Tst"] == [p.to_dict()["Tst"]] * 2
+    assert fit.noise_levels == {"torque": 0.5, "motor_velocity": 0.02}
+
+
+@pytest.mark.parametrize("break_it, field", [
+    (lambda d: d["parameters"].pop("Jeff"), "Jeff"),
+    (lambda d: d["parameters"]["K1"].update(value="stiff"), "value"),
+    (lambda d: d["parameters"]["Tst"].update(value=float("nan")), "not finite"),
+])
+def test_a_broken_fit_json_names_the_file_the_field_and_the_fix(tmp_path, break_it, field):
+    p, _ = hd2()
+    doc = _fit_doc(p)
+    break_it(doc)
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError) as e:
+        read_fit_json(path, setting="config `sensitivity.fit_json`")
+    msg = str(e.value)
+    assert str(path) in msg and field in msg and "python -m hdjax.fit" in msg and "sensitivity.fit_json" in msg
+    assert fit_json_dataset(tmp_path / "missing.json") is None
+
+
+def test_effects_round_trip_through_the_extended_model(tmp_path):
+    eff = (Effects().with_periodic("kinematic_error", 2, 1.5e-4, 0.3).with_periodic("kinematic_error", 3, 4e-5, -1.0)
+           .with_values("thermal_drift", beta=0.4, tau=450.0))
+    d = effects_to_dict(eff)
+    assert set(d) == {"kinematic_error", "thermal_drift"} and d["thermal_drift"]["tau"] == 450.0
+    p, _ = hd2()
+    path = tmp_path / "extended_model.json"
+    path.write_text(json.dumps({"parameters": p.to_dict(), "effects": d}))
+    p2, eff2 = read_extended_model(path)
+    assert p2.to_dict() == p.to_dict() and eff2.active == eff.active
+    d2 = effects_to_dict(eff2)  # through sin/cos coefficients: equal to round-off
+    assert d2["thermal_drift"] == d["thermal_drift"] and d2["kinematic_error"]["orders"] == d["kinematic_error"]["orders"]
+    for key in ("amplitudes", "phases"):
+        np.testing.assert_allclose(d2["kinematic_error"][key], d["kinematic_error"][key], rtol=1e-12, atol=1e-15)
+    with pytest.raises(ValueError, match="unknown effect 'backlash'"):
+        effects_from_dict({"backlash": {}})
+    path.write_text(json.dumps({"parameters": {k: 1.0 for k in PARAMETER_NAMES[:3]}}))
+    with pytest.raises(ValueError, match="extended_model.json"):
+        read_extended_model(path)
