@@ -603,3 +603,25 @@ def test_write_dataset_overwrites_and_explicit_start_times(tmp_path):
     assert ds.start_times == [7.0] and float(ds.experiments[0].start_time) == 7.0
     assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["a.csv", "dataset.yaml"]
     assert re.fullmatch(r"[-+0-9.e,]+", (tmp_path / "w/a.csv").read_text().splitlines()[1])
+
+
+def test_dynamic_part_names_the_command_the_folder_and_the_fix(tmp_path):
+    """Every command that simulates takes its experiments through `Dataset.dynamic_part`; a
+    dataset without them gets one clear error (friction-only data: where they do go instead)."""
+    from hdjax._data import Dataset
+    from helpers import hd2, sine_experiment
+
+    t = np.arange(200) * 1e-3
+    fric = make_friction_experiment(t, np.linspace(-1, 1, t.size), np.zeros(t.size))
+    only_friction = Dataset("f", tmp_path, None, [fric], ["f.csv"], ["friction"], [0.0])
+    with pytest.raises(DatasetError, match=r"dataset\.yaml: `tune` needs at least 1 constrained or free experiment "
+                                           r"and a `drive` block; this dataset has 1 friction experiments and no "
+                                           r"`drive` block\..*fitted and diagnosed as friction"):
+        only_friction.dynamic_part("tune")
+    _, drive = hd2()
+    one = Dataset("d", tmp_path, drive, [sine_experiment("free"), fric], ["a.csv", "f.csv"], ["free", "friction"],
+                  [0.0, 0.0])
+    part = one.dynamic_part("fit")
+    assert part.drive is drive and part.files == ["a.csv"] and part.modes == ["free"] and len(part.experiments) == 1
+    with pytest.raises(DatasetError, match=r"`diagnose` needs at least 2 constrained or free experiments"):
+        one.dynamic_part("diagnose", at_least=2)

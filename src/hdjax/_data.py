@@ -32,7 +32,7 @@ import pathlib
 import re
 import tempfile
 import warnings
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -79,6 +79,15 @@ _TOP_KEYS = ("name", "drive", "experiments")
 _DRIVE_KEYS = ("gear_ratio", "torque_constant", "load_inertia")
 _ENTRY_KEYS = ("file", "mode", "start_time")
 _MAX_JITTER = 0.01  # relative time-step jitter allowed, |dt - median dt| / median dt
+
+
+class DynamicPart(NamedTuple):
+    """A dataset's constrained and free experiments, as `Dataset.dynamic_part` returns them."""
+
+    drive: Drive
+    experiments: list
+    files: list[str]
+    modes: list[str]
 
 
 class DatasetError(ValueError):
@@ -197,6 +206,23 @@ class Dataset:
     def dynamic_indices(self) -> list[int]:
         """Indices of the constrained and free-motion experiments (those a simulation can replay)."""
         return [i for i, m in enumerate(self.modes) if m in ("constrained", "free")]
+
+    def dynamic_part(self, command: str, *, at_least: int = 1) -> DynamicPart:
+        """The constrained and free experiments (with their files and modes) and the drive that
+        `command` simulates; a `DatasetError` naming the folder and the fix when there is no
+        `drive` block or fewer than `at_least` such experiments."""
+        idx = self.dynamic_indices()
+        if self.drive is None or len(idx) < at_least:
+            have = ", ".join(f"{self.modes.count(m)} {m}" for m in sorted(set(self.modes))) or "no"
+            no_drive = " and no `drive` block" if self.drive is None else ""
+            hint = (" Friction-only datasets are fitted and diagnosed as friction by `hdjax fit` and `hdjax diagnose`."
+                    if set(self.modes) == {"friction"} else "")
+            raise DatasetError(
+                f"{self.folder / 'dataset.yaml'}: `{command}` needs at least {at_least} constrained or free "
+                f"experiment{'s' if at_least > 1 else ''} and a `drive` block; this dataset has {have} experiments"
+                f"{no_drive}. Add such records (and the drive constants) to dataset.yaml.{hint}")
+        return DynamicPart(self.drive, [self.experiments[i] for i in idx], [self.files[i] for i in idx],
+                           [self.modes[i] for i in idx])
 
     def friction_indices(self) -> list[int]:
         """Indices of the friction experiments."""

@@ -103,19 +103,12 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     t_start = time.time()
     out = pathlib.Path(out)
     opts = section_options(config, "diagnose", DEFAULTS)
-    dyn = dataset.dynamic_indices()
-    if dataset.drive is None or len(dyn) < 2:
-        raise ValueError(
-            f"{dataset.folder}: `diagnose` needs at least two constrained or free experiments with a `drive` block "
-            "(it holds experiments out for validation). Friction-only diagnosis is not implemented yet."
-        )
-    exps = [dataset.experiments[i] for i in dyn]
-    files = [dataset.files[i] for i in dyn]
+    drive, exps, files, _ = dataset.dynamic_part("diagnose", at_least=2)  # two: it holds experiments out
     from ._identify import _options as fit_options
 
     fit_opts = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
     log(f"[1/3] paper's identification on {len(exps)} experiments (start of the base model)")
-    paper = identify_paper(exps, dataset.drive, alpha=fit_opts["alpha"], Tss2=fit_opts["Tss2"], cutoff_hz=fit_opts["cutoff_hz"])
+    paper = identify_paper(exps, drive, alpha=fit_opts["alpha"], Tss2=fit_opts["Tss2"], cutoff_hz=fit_opts["cutoff_hz"])
     log("[2/3] discrepancy loop (base fit, residual evidence, cross-validated candidates)")
     with DiagnosisProgress(log, opts) as watch:
         d = _run_diagnose(paper, dataset, exps, opts, watch)

@@ -87,16 +87,8 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     t_start = time.time()
     opts = _options(config)
     out = pathlib.Path(out)
+    drive, exps, files, modes = dataset.dynamic_part("fit")
     dyn = dataset.dynamic_indices()
-    if dataset.drive is None or not dyn:
-        raise ValueError(
-            f"{dataset.folder}: `fit` needs constrained or free experiments with a `drive` block; this dataset has "
-            f"only {sorted(set(dataset.modes))} experiments. Friction-only fitting (mode: friction) is not implemented yet."
-        )
-    drive = dataset.drive
-    exps = [dataset.experiments[i] for i in dyn]
-    files = [dataset.files[i] for i in dyn]
-    modes = [dataset.modes[i] for i in dyn]
     notes: list[str] = []
 
     log(f"[1/4] paper's identification (regressions, vmap over {len(exps)} experiments)")

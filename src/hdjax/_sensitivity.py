@@ -345,16 +345,7 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     timing = {}
     opts = _options(config)
     out = pathlib.Path(out)
-    dyn = dataset.dynamic_indices()
-    if dataset.drive is None or not dyn:
-        raise ValueError(
-            f"{dataset.folder}: `sensitivity` needs constrained or free experiments with a `drive` block; this "
-            f"dataset has only {sorted(set(dataset.modes))} experiments."
-        )
-    drive = dataset.drive
-    exps = [dataset.experiments[i] for i in dyn]
-    files_all = [dataset.files[i] for i in dyn]
-    modes_all = [dataset.modes[i] for i in dyn]
+    drive, exps, files_all, modes_all = dataset.dynamic_part("sensitivity")
     notes: list[str] = []
 
     log("[1/5] parameters")

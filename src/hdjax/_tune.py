@@ -359,15 +359,12 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     t_start = time.time()
     out = pathlib.Path(out)
     opts = _options(config)
-    if dataset.drive is None or not dataset.dynamic_indices():
-        raise ValueError(f"{dataset.folder}: `tune` needs constrained and free experiments with a `drive` block.")
-    drive = dataset.drive
+    drive, exps, _, _ = dataset.dynamic_part("tune")
     notes = []
     timing = {}
 
     log("[1/6] identified plant")
     nominal, effects, per, sigma, source = _identified(dataset, config, opts, out, log)
-    exps = [dataset.experiments[i] for i in dataset.dynamic_indices()]
     ts = float(exps[0].time[1] - exps[0].time[0])
     ilim = float(opts["current_limit"] or max(float(np.max(np.abs(np.asarray(e.current)))) for e in exps))
     if opts["current_limit"] is None:
