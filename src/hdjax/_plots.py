@@ -23,6 +23,14 @@ from ._model import Parameters
 from ._sensitivity import ABLATIONS, CHANNEL_SYMBOL, CHANNEL_UNITS, _short
 from ._tune import CONTROLLERS, LABELS
 
+
+def _save(fig, out: pathlib.Path, name: str, names: list[str], **savefig) -> None:
+    """Write `fig` atomically to `out / name`, close it and record `name` in `names`."""
+    atomic_savefig(fig, out / name, **savefig)
+    plt.close(fig)
+    names.append(name)
+
+
 COLORS = {"relay_zn": "tab:orange", "model_pi": "tab:purple", "tuned": "tab:blue"}
 
 
@@ -53,9 +61,7 @@ def fit_figures(out, p: Parameters, paper, full, traj, modes, files, drive, expe
         ax.set_title(f"Hysteresis torsion curve ({files[j]})")
         ax.legend(fontsize=8)
         ax.grid(alpha=0.3)
-        atomic_savefig(fig, out / "fig3_hysteresis.png", dpi=120, bbox_inches="tight")
-        plt.close(fig)
-        names.append("fig3_hysteresis.png")
+        _save(fig, out, "fig3_hysteresis.png", names, dpi=120, bbox_inches="tight")
 
     # Fig. 4: torque fit on four typical experiments
     pick = (cons[:2] + free[:2]) if len(cons) >= 2 and len(free) >= 2 else (cons + free)[:4]
@@ -70,9 +76,7 @@ def fit_figures(out, p: Parameters, paper, full, traj, modes, files, drive, expe
         axes[0, 0].legend(loc="upper right")
         axes[-1, 0].set_xlabel("time (s)")
         fig.tight_layout()
-        atomic_savefig(fig, out / "fig4_torque_fit.png", dpi=110)
-        plt.close(fig)
-        names.append("fig4_torque_fit.png")
+        _save(fig, out, "fig4_torque_fit.png", names, dpi=110)
 
     # Fig. 5: simulated vs measured velocity and torque, free and constrained
     pairs = [(j, md) for j, md in ((free[0] if free else None, "free"), (cons[0] if cons else None, "constrained")) if j is not None]
@@ -89,9 +93,7 @@ def fit_figures(out, p: Parameters, paper, full, traj, modes, files, drive, expe
                 ax.set_title(f"{md}: {files[j]}", fontsize=9)
         axes[0, 0].legend()
         fig.tight_layout()
-        atomic_savefig(fig, out / "fig5_simulation.png", dpi=110)
-        plt.close(fig)
-        names.append("fig5_simulation.png")
+        _save(fig, out, "fig5_simulation.png", names, dpi=110)
     return names
 
 
@@ -121,9 +123,7 @@ def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical
     cb = fig.colorbar(im, ax=ax)
     cb.set_label("1 / relative SE of p_k alone (–), log scale")
     fig.tight_layout()
-    atomic_savefig(fig, out / "sensitivity_heatmap.png", dpi=120)
-    plt.close(fig)
-    figs.append("sensitivity_heatmap.png")
+    _save(fig, out, "sensitivity_heatmap.png", figs, dpi=120)
 
     # time-resolved sensitivity curves for a typical constrained and free experiment
     cols = [(m, typical[m]) for m in ("constrained", "free") if m in typical]
@@ -148,9 +148,7 @@ def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical
             axes[-1, ci].set_xlabel("time (s)")
         axes[0, -1].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="parameter")
         fig.tight_layout()
-        atomic_savefig(fig, out / "sensitivity_curves.png", dpi=110)
-        plt.close(fig)
-        figs.append("sensitivity_curves.png")
+        _save(fig, out, "sensitivity_curves.png", figs, dpi=110)
 
     # correlation matrix
     C = np.array(fs_all["correlation"], dtype=float)
@@ -167,9 +165,7 @@ def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical
     cb = fig.colorbar(im, ax=ax)
     cb.set_label("correlation coefficient (–)")
     fig.tight_layout()
-    atomic_savefig(fig, out / "correlation.png", dpi=120)
-    plt.close(fig)
-    figs.append("correlation.png")
+    _save(fig, out, "correlation.png", figs, dpi=120)
 
     # paper's Fig. 6 (free) and Fig. 7 (constrained): measured vs complete vs simplified
     if abl_traj is not None:
@@ -203,9 +199,7 @@ def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical
                         ax.legend(fontsize=8)
                 axes[-1, ci].set_xlabel("time (s)")
             fig.tight_layout()
-            atomic_savefig(fig, out / fname, dpi=110)
-            plt.close(fig)
-            figs.append(fname)
+            _save(fig, out, fname, figs, dpi=110)
     return figs
 
 
@@ -232,9 +226,7 @@ def tune_figures(out, traj, sim, ref_info, search, res, ilim, kind) -> list[str]
     axes[0, 0].legend(fontsize=7)
     fig.suptitle(f"Torque tracking on the {kind}: baselines vs tuned (thin: measured torque)")
     fig.tight_layout()
-    atomic_savefig(fig, out / "tracking.png", dpi=110)
-    plt.close(fig)
-    names.append("tracking.png")
+    _save(fig, out, "tracking.png", names, dpi=110)
 
     fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
     for j, (ax, info) in enumerate(zip(axes.flat, ref_info)):
@@ -251,9 +243,7 @@ def tune_figures(out, traj, sim, ref_info, search, res, ilim, kind) -> list[str]
     axes[0, 0].legend(fontsize=7)
     fig.suptitle(f"Control effort on the {kind}")
     fig.tight_layout()
-    atomic_savefig(fig, out / "control_effort.png", dpi=110)
-    plt.close(fig)
-    names.append("control_effort.png")
+    _save(fig, out, "control_effort.png", names, dpi=110)
 
     fig, ax = plt.subplots(figsize=(7, 4))
     sc = [c["cost"] for c in search]
@@ -268,9 +258,7 @@ def tune_figures(out, traj, sim, ref_info, search, res, ilim, kind) -> list[str]
     ax.set_title("Tuning cost (model: plant sets x references + margin term)")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    atomic_savefig(fig, out / "cost_history.png", dpi=110)
-    plt.close(fig)
-    names.append("cost_history.png")
+    _save(fig, out, "cost_history.png", names, dpi=110)
     return names
 
 
@@ -294,9 +282,7 @@ def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
         ax.set_title("Residual order spectra of the fitted paper model")
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
-        atomic_savefig(fig, out / "residual_spectra.png", dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        names.append("residual_spectra.png")
+        _save(fig, out, "residual_spectra.png", names, dpi=110, bbox_inches="tight")
     if d.findings and d.traces:
         batch = stack_experiments(exps)
         m = np.asarray(batch.mask)
@@ -316,9 +302,7 @@ def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
         axes[0, 0].legend(fontsize=8)
         axes[-1, 0].set_xlabel("time (s)")
         fig.tight_layout()
-        atomic_savefig(fig, out / "residual_before_after.png", dpi=110)
-        plt.close(fig)
-        names.append("residual_before_after.png")
+        _save(fig, out, "residual_before_after.png", names, dpi=110)
         # hysteresis loop of a constrained test: torque against torsion, measured vs both models
         if (~free).any():
             j = int(np.argmax(~free))
@@ -332,9 +316,7 @@ def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
             ax.set_title(f"Hysteresis loop, {files[j]} (constrained)")
             ax.legend(fontsize=8)
             ax.grid(alpha=0.3)
-            atomic_savefig(fig, out / "hysteresis_before_after.png", dpi=110, bbox_inches="tight")
-            plt.close(fig)
-            names.append("hysteresis_before_after.png")
+            _save(fig, out, "hysteresis_before_after.png", names, dpi=110, bbox_inches="tight")
     return names
 
 
