@@ -213,7 +213,8 @@ class FrictionProblem:
     velocity step between fitted samples could hide between them (Kinova joint 7, 2026-11-26:
     Tss2 fell to 6e-4 and 1e-131 rad/s, and eq. 9's whole-record RMS came out up to 1.8× that of
     its special case Coulomb + viscous, with 194 N·m errors at samples the fit did not see).
-    A fit that ends worse than its start on every training sample keeps its start (`solve`).
+    A fit whose weighted squared error summed over all its training samples ends above its
+    start's keeps its start (`solve`).
     """
 
     experiments: list
@@ -383,7 +384,8 @@ class FrictionProblem:
                               jnp.asarray(tie[b]), self.data, structures[b], self.scale, self.sigma, self.smoothing,
                               self.index, self.max_steps)
             x, pred = np.asarray(x), self.predict_row(np.asarray(x), int(tie[b]), structures[b])
-            # the fit sees a subsample: keep the start if the result is worse on every training sample
+            # the fit sees a subsample: keep the start if the result's squared error, summed over all
+            # the training samples, is larger than the start's
             pred0 = self.predict_row(np.asarray(x0[b]), int(tie[b]), structures[b])
             if self._sse(pred0, rows.train[b]) < self._sse(pred, rows.train[b]):
                 x, pred = np.asarray(x0[b], dtype=float), pred0
