@@ -3,7 +3,7 @@
     python experiments/real_friction.py ../shared/real-data/franka-joint2 [--out DIR] [--per-record]
 
 Prints, per record: eq. 9 and its special case, symmetric Coulomb + viscous (linear least squares),
-each fitted on the record alone, RMS error raw and low-passed at 1 Hz (`hdjax._friction_fit.filtered_rms`,
+each fitted on the record alone, RMS error raw and low-passed at 1 Hz (`hdjax.filtered_rms`,
 the published comparisons' metric), both over the whole file (fitted on all of it, as the published
 table) and held out (fitted on the first 70 %, scored on the last 30 %); against the published
 baselines found in the folder's SOURCE.md (lines like `case3 slow: Coulomb+viscous 0.206, ...`);
@@ -22,10 +22,8 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from hdjax._data import load_dataset  # noqa: E402
-from hdjax._friction_cli import friction_diagnosis_doc  # noqa: E402
-from hdjax._friction_fit import FrictionProblem, fit_coulomb_viscous, rms_stats  # noqa: E402
-from hdjax._plots import friction_cv_figure, friction_heldout_time_figure, friction_velocity_figure  # noqa: E402
+from hdjax import FrictionProblem, fit_coulomb_viscous, friction_diagnosis_doc, load_dataset, rms_stats  # noqa: E402
+from hdjax.plotting import friction_cv_figure, friction_heldout_time_figure, friction_velocity_figure  # noqa: E402
 
 
 def published(folder: pathlib.Path) -> dict[str, dict[str, float]]:

@@ -42,8 +42,14 @@ from ._friction import (
     FrictionStructure as FrictionStructure,
     friction_model_torque as friction_model_torque,
 )
+from ._friction_cli import friction_diagnosis_doc as friction_diagnosis_doc
 from ._friction_diag import diagnose_friction as diagnose_friction
-from ._friction_fit import FrictionProblem as FrictionProblem
+from ._friction_fit import (
+    FrictionProblem as FrictionProblem,
+    filtered_rms as filtered_rms,
+    fit_coulomb_viscous as fit_coulomb_viscous,
+    rms_stats as rms_stats,
+)
 from ._lm import MarquardtLM as MarquardtLM
 from ._model import (
     PARAMETER_NAMES as PARAMETER_NAMES,

@@ -881,6 +881,118 @@ def _describe_items(findings: list[dict], form_items: list[dict], final_effects:
             f.pop("orders")
 
 
+def _setup(p_base: Parameters, drive: Drive, experiments: list[Experiment], batch: Experiment, sigma, *, base_free,
+           effects: list[str], simulator: Simulator, jacobian_rtol: float, per_record_noise: bool, timing: dict, log):
+    """Every effect column (scaled from the data), the compiled problem (simulations at `simulator`'s
+    tolerance, Jacobians at `jacobian_rtol`: they only set Gauss–Newton directions, every accepted
+    step and held-out figure is simulated) and the base model's simulation. Returns the `_Loop` at
+    the base model (`effects` switched on at zero), the base trajectories, the parameter map and
+    the data context."""
+    pmap = make_parameter_map(p_base, base_free)
+    n_base = len(base_free)
+    n_exp = len(experiments)
+    m = np.asarray(batch.mask)
+    modes = np.where(np.asarray(batch.free) > 0, "free", "constrained")
+    ctx = _data_context(p_base, batch, sigma)
+    cols = _all_columns(ctx)
+    prob = _Problem(pmap=pmap, cols=tuple(dataclasses.replace(c, scale=1.0, start=0.0) for c in cols),
+                    scales=jnp.asarray([c.scale for c in cols]), starts=jnp.asarray([c.start for c in cols]),
+                    effects=_fixed_effect_settings(ctx, effects), drive=drive,
+                    simulator=simulator, mesh=experiment_mesh() if jax.device_count() > 1 else None)
+    loose = dataclasses.replace(simulator, rtol=jacobian_rtol, atol=jacobian_rtol * 1e-2)
+    z0 = np.concatenate([np.asarray(pmap.to_theta(p_base)), np.zeros(len(cols))])
+    t1 = time.perf_counter()
+    traj = prob.trajectories(jnp.asarray(np.tile(z0, (n_exp, 1))), p_base, batch)
+    timing["compile_and_base_simulation"] = time.perf_counter() - t1
+    timing["jacobians"] = timing["simulations"] = 0.0
+    failed = np.where(~np.asarray(traj.success))[0]
+    if failed.size:
+        # their residuals are the constant failure value of `experiment_residuals`: no information
+        log(f"diagnose: WARNING: the base-model simulation failed on experiment(s) {failed.tolist()} "
+            f"({type(simulator.solver).__name__}); they carry no information in this diagnosis")
+    th_span = np.array([np.ptp(np.asarray(traj.motor_position[e])[m[e]]) if m[e].any() else 0.0 for e in range(n_exp)])
+    unresolved = {n_base + j: (c.index + 1) * th_span < 2.0 * math.pi for j, c in enumerate(cols) if c.index is not None}
+    loop = _Loop(prob=prob, jac_prob=eqx.tree_at(lambda q: q.simulator, prob, loose), p_base=p_base, batch=batch,
+                 sig_exp=_record_noise(experiments, modes, sigma, per_record_noise), m=m, modes=modes, cols=cols,
+                 n_base=n_base, unresolved={j: u for j, u in unresolved.items() if u.any()}, timing=timing, z=z0)
+    return loop, traj, pmap, ctx
+
+
+@dataclasses.dataclass
+class _Outcome:
+    """What the greedy rounds decided: effects found (SPEC §4, in order), base-model assumptions
+    adopted (SPEC §4b), their entries, every stage's scores, and the held-out residuals of the
+    base model (the first screening's reference)."""
+
+    chosen: list = dataclasses.field(default_factory=list)
+    adopted: list = dataclasses.field(default_factory=list)
+    findings: list = dataclasses.field(default_factory=list)
+    form_items: list = dataclasses.field(default_factory=list)
+    rounds: list = dataclasses.field(default_factory=list)
+    base_res: np.ndarray | None = None
+
+
+def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: list[str], remaining: list[str], cand_idx: dict,
+                   folds: np.ndarray, fit_folds: np.ndarray, n_found_before: int, max_findings: int, misfit_scaling: bool,
+                   reuse_jacobian: bool, refine_steps: int, refine_jacobians: int, confirm_top: int, rule: Significance,
+                   log) -> None:
+    """The greedy rounds (module docstring, steps 3–5), recorded in `out`: each round re-estimates the
+    noise model, takes one Jacobian (w.r.t. the base, the accepted effects and every candidate) at
+    the current model, refines base + accepted effects, screens and accepts the best candidate;
+    round 0 first screens the base model's own assumptions (model_form) and adopts every
+    significant one, then the effects against that base model, with the same Jacobian. Stops when
+    nothing is significant, no candidate is left, or `max_findings` (with the `n_found_before`
+    torque-balance findings) are reached."""
+    n_base = loop.n_base
+    for rnd in range(max_findings + 1):
+        stages = ("model_form", "effects") if rnd == 0 and model_form else ("effects",)
+        if not remaining:
+            break
+        chosen_idx = [j for c in out.adopted + out.chosen for j in cand_idx[c]]
+        active = list(range(n_base)) + chosen_idx
+        sel = active + [j for c in (model_form if rnd == 0 else []) + remaining for j in cand_idx[c]]
+        log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
+        proc, r_white0 = _round_noise_model(loop, misfit_scaling=misfit_scaling)
+        J = loop.jacobian(loop.z, sel, reuse=reuse_jacobian and rnd > 0)
+        if rnd == 0:
+            _noise_evidence(loop, proc, r_white0, evidence, log)
+        J = _refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log)
+
+        stop = False
+        for stage in stages:
+            form_round = stage == "model_form"
+            pool = model_form if form_round else remaining
+            ff = _FoldFits.at(loop, J, sel, fit_folds)
+            scores, raw_before, raw_after_of = _screen(loop, ff, pool, chosen_idx, cand_idx, folds,
+                                                       n_simulated=len(pool) if form_round else confirm_top, rule=rule, log=log)
+            if out.base_res is None:
+                out.base_res = raw_before
+            out.rounds.append(scores)
+            sig = [c for c in scores if scores[c]["significant"]]
+            if not sig:
+                if form_round:
+                    continue
+                stop = True
+                break
+            if form_round:
+                accept = sorted(sig, key=lambda c: -scores[c]["gain"])
+                out.form_items += [_form_item(loop, c, scores[c], raw_before, raw_after_of, len(out.rounds) - 1) for c in accept]
+            else:
+                accept = [max(sig, key=lambda c: scores[c]["gain"])]
+            _accept(loop, J, sel, [j for c in accept for j in cand_idx[c]])
+            log(f"  accepted {', '.join(accept)}")
+            if form_round:
+                out.adopted.extend(accept)
+                chosen_idx = [j for c in out.adopted + out.chosen for j in cand_idx[c]]
+                continue
+            best = accept[0]
+            out.chosen.append(best)
+            out.findings.append(_finding(loop, best, scores[best], raw_before, raw_after_of[best], len(out.rounds) - 1))
+            remaining.remove(best)
+        if stop or len(out.chosen) + n_found_before >= max_findings:
+            break
+
+
 def diagnose(
     p0: Parameters,
     drive: Drive,
@@ -932,7 +1044,8 @@ def diagnose(
     The stages, in order: base fit, setup (columns, compiled problem, base simulation), evidence
     and screened orders, torque-balance route, then per round: noise model, Jacobian, refinement,
     screening of model_form assumptions (round 1) and effects, acceptance; last the extended
-    model's description, traces and what is left unexplained.
+    model's description, traces and what is left unexplained. (Over 100 lines only through its
+    options and this docstring; the body is those stages, about 70 lines.)
     """
     from ._fit import fit_parameters, noise_levels
 
@@ -956,34 +1069,10 @@ def diagnose(
     timing["base_fit"] = time.perf_counter() - t0
 
     # stage 2: every effect column, the compiled problem, the base simulation
-    pmap = make_parameter_map(p_base, base_free)
-    n_base = len(base_free)
-    m = np.asarray(batch.mask)
-    modes = np.where(np.asarray(batch.free) > 0, "free", "constrained")
-    ctx = _data_context(p_base, batch, sigma)
-    cols = _all_columns(ctx)
-    prob = _Problem(pmap=pmap, cols=tuple(dataclasses.replace(c, scale=1.0, start=0.0) for c in cols),
-                    scales=jnp.asarray([c.scale for c in cols]), starts=jnp.asarray([c.start for c in cols]),
-                    effects=_fixed_effect_settings(ctx, list(candidates) + model_form), drive=drive,
-                    simulator=simulator, mesh=experiment_mesh() if jax.device_count() > 1 else None)
-    # Jacobians only set Gauss–Newton directions (every accepted step and held-out figure is a
-    # simulation at `simulator`'s tolerance), so they are computed at a looser tolerance
-    loose = dataclasses.replace(simulator, rtol=jacobian_rtol, atol=jacobian_rtol * 1e-2)
-    z0 = np.concatenate([np.asarray(pmap.to_theta(p_base)), np.zeros(len(cols))])
-    t1 = time.perf_counter()
-    traj = prob.trajectories(jnp.asarray(np.tile(z0, (n_exp, 1))), p_base, batch)
-    timing["compile_and_base_simulation"] = time.perf_counter() - t1
-    timing["jacobians"] = timing["simulations"] = 0.0
-    failed = np.where(~np.asarray(traj.success))[0]
-    if failed.size:
-        # their residuals are the constant failure value of `experiment_residuals`: no information
-        log(f"diagnose: WARNING: the base-model simulation failed on experiment(s) {failed.tolist()} "
-            f"({type(simulator.solver).__name__}); they carry no information in this diagnosis")
-    th_span = np.array([np.ptp(np.asarray(traj.motor_position[e])[m[e]]) if m[e].any() else 0.0 for e in range(n_exp)])
-    unresolved = {n_base + j: (c.index + 1) * th_span < 2.0 * math.pi for j, c in enumerate(cols) if c.index is not None}
-    loop = _Loop(prob=prob, jac_prob=eqx.tree_at(lambda q: q.simulator, prob, loose), p_base=p_base, batch=batch,
-                 sig_exp=_record_noise(experiments, modes, sigma, per_record_noise), m=m, modes=modes, cols=cols,
-                 n_base=n_base, unresolved={j: u for j, u in unresolved.items() if u.any()}, timing=timing, z=z0)
+    loop, traj, pmap, ctx = _setup(p_base, drive, experiments, batch, sigma, base_free=base_free,
+                                   effects=list(candidates) + model_form, simulator=simulator, jacobian_rtol=jacobian_rtol,
+                                   per_record_noise=per_record_noise, timing=timing, log=log)
+    n_base, m, modes, cols = loop.n_base, loop.m, loop.modes, loop.cols
 
     # stage 3: evidence (residual spectra and covariate correlations of the base model), the orders
     # screened, the halves
@@ -992,85 +1081,37 @@ def diagnose(
     folds, fit_folds = _folds(modes, cross_validation)
     cand_idx = {c: [n_base + j for j in _candidate_columns(cols, c, orders_of.get(c, ()))] for c in list(candidates) + model_form}
 
-    chosen: list[str] = []  # effects found (SPEC §4)
-    adopted: list[str] = []  # base-model assumptions loosened (SPEC §4b)
-    findings, rounds, form_items = [], [], []
     remaining = list(candidates)
-    base_res = None
     loop.r, loop.r_raw = loop.simulate_each(loop.tile(loop.z))
     # stage 4: the torque-balance route (cogging, position-dependent friction)
+    tb_findings = []
     if tb_route:
-        findings += _torque_balance_route(loop, traj, evidence, drive, requested=requested, max_findings=max_findings,
-                                          min_improved_fraction=min_improved_fraction, cand_idx=cand_idx,
-                                          orders_of=orders_of, log=log)
-    tb_found = [f["effect"] for f in findings]
+        tb_findings = _torque_balance_route(loop, traj, evidence, drive, requested=requested, max_findings=max_findings,
+                                            min_improved_fraction=min_improved_fraction, cand_idx=cand_idx,
+                                            orders_of=orders_of, log=log)
+    tb_found = [f["effect"] for f in tb_findings]
     for name in tb_found:
         if name in remaining:
             remaining.remove(name)
 
     # stage 5: greedy rounds
-    for rnd in range(max_findings + 1):
-        # round 0 first screens the base model's own assumptions (model_form) and adopts every
-        # significant one, then screens the effects against that base model, with the same Jacobian
-        stages = ("model_form", "effects") if rnd == 0 and model_form else ("effects",)
-        if not remaining:
-            break
-        chosen_idx = [j for c in adopted + chosen for j in cand_idx[c]]
-        active = list(range(n_base)) + chosen_idx
-        sel = active + [j for c in (model_form if rnd == 0 else []) + remaining for j in cand_idx[c]]
-        # One Jacobian per round (w.r.t. the base, the accepted effects and every candidate), at the
-        # current model: it refines base + accepted effects and screens the candidates
-        log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
-        proc, r_white0 = _round_noise_model(loop, misfit_scaling=misfit_scaling)
-        J = loop.jacobian(loop.z, sel, reuse=reuse_jacobian and rnd > 0)
-        if rnd == 0:
-            _noise_evidence(loop, proc, r_white0, evidence, log)
-        J = _refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log)
-
-        stop = False
-        for stage in stages:
-            form_round = stage == "model_form"
-            pool = model_form if form_round else remaining
-            ff = _FoldFits.at(loop, J, sel, fit_folds)
-            scores, raw_before, raw_after_of = _screen(loop, ff, pool, chosen_idx, cand_idx, folds,
-                                                       n_simulated=len(pool) if form_round else confirm_top, rule=rule, log=log)
-            if base_res is None:
-                base_res = raw_before
-            rounds.append(scores)
-            sig = [c for c in scores if scores[c]["significant"]]
-            if not sig:
-                if form_round:
-                    continue
-                stop = True
-                break
-            if form_round:
-                accept = sorted(sig, key=lambda c: -scores[c]["gain"])
-                form_items += [_form_item(loop, c, scores[c], raw_before, raw_after_of, len(rounds) - 1) for c in accept]
-            else:
-                accept = [max(sig, key=lambda c: scores[c]["gain"])]
-            _accept(loop, J, sel, [j for c in accept for j in cand_idx[c]])
-            log(f"  accepted {', '.join(accept)}")
-            if form_round:
-                adopted.extend(accept)
-                chosen_idx = [j for c in adopted + chosen for j in cand_idx[c]]
-                continue
-            best = accept[0]
-            chosen.append(best)
-            findings.append(_finding(loop, best, scores[best], raw_before, raw_after_of[best], len(rounds) - 1))
-            remaining.remove(best)
-        if stop or len(chosen) + len(tb_found) >= max_findings:
-            break
+    out = _Outcome(findings=tb_findings)
+    _greedy_rounds(loop, out, evidence, model_form=model_form, remaining=remaining, cand_idx=cand_idx, folds=folds,
+                   fit_folds=fit_folds, n_found_before=len(tb_found), max_findings=max_findings, misfit_scaling=misfit_scaling,
+                   reuse_jacobian=reuse_jacobian, refine_steps=refine_steps, refine_jacobians=refine_jacobians,
+                   confirm_top=confirm_top, rule=rule, log=log)
+    chosen, adopted, findings, form_items, rounds, base_res = out.chosen, out.adopted, out.findings, out.form_items, out.rounds, out.base_res
 
     # stage 6: the extended model, its description, traces for the figures, what is left
-    z_cur, n_base = loop.z, loop.n_base
+    z_cur = loop.z
     current_p = pmap.to_params(jnp.asarray(z_cur[:n_base]), p_base)
     final_effects = _apply(_fixed_effect_settings(ctx, adopted + chosen + tb_found), cols, z_cur[n_base:])
     _describe_items(findings, form_items, final_effects, evidence, rounds, orders_of)
     # torque of the final base parameters without / with the effects (figures), and what is left
     z_plain = z_cur.copy()
     z_plain[[j for c in chosen + tb_found for j in cand_idx[c]]] = 0.0
-    tr0 = prob.trajectories(jnp.asarray(loop.tile(z_plain)), p_base, batch)
-    tr1 = prob.trajectories(jnp.asarray(loop.tile(z_cur)), p_base, batch) if findings else tr0
+    tr0 = loop.prob.trajectories(jnp.asarray(loop.tile(z_plain)), p_base, batch)
+    tr1 = loop.prob.trajectories(jnp.asarray(loop.tile(z_cur)), p_base, batch) if findings else tr0
     traces = {"torque_base": np.asarray(tr0.torque), "torque_extended": np.asarray(tr1.torque),
               "torsion_extended": np.asarray(tr1.torsion), "motor_position": np.asarray(tr1.motor_position)}
     unexplained = _unexplained(batch, tr1, m, modes, sigma, loop.r_raw, loop.r)
