@@ -107,12 +107,13 @@ def test_sharded_fit_matches_one_device(runs):
 
 def test_use_host_devices_sets_the_count_before_jax_starts_and_import_starts_nothing():
     """`import hdjax` must not start JAX's backends (else the commands could not spread experiments
-    over the cores); `use_host_devices(3)` then gives three CPU devices, and a second call (flag
-    already set) changes nothing."""
+    over the cores), nor import matplotlib (only `hdjax.plotting` and the commands' figure step
+    do); `use_host_devices(3)` then gives three CPU devices, and a second call (flag already set)
+    changes nothing."""
     script = (
-        "import hdjax, hdjax.fit, hdjax.diagnose\n"
+        "import sys, hdjax, hdjax.bench, hdjax.fit, hdjax.diagnose\n"
         "from jax._src import xla_bridge\n"
-        "started = xla_bridge.backends_are_initialized()\n"
+        "started = xla_bridge.backends_are_initialized() or 'matplotlib' in sys.modules\n"
         "from hdjax._sharding import use_host_devices\n"
         "n = use_host_devices(3)\n"
         "again = use_host_devices(5)\n"
