@@ -677,7 +677,9 @@ def _validation_costs(runs: list[dict], ref_info, ilim: float) -> dict:
     averaged over the runs, and the tracking cost per run and overall."""
     rows_runs = [{info["name"]: _validation_row(tr, j, info, ilim) for j, info in enumerate(ref_info)} for tr in runs]
     # mean over the runs of every figure (step metrics included)
-    per_ref = {ref: {k: _mean_or_none([rr[ref][k] for rr in rows_runs]) for k in rows_runs[0][ref]} for ref in rows_runs[0]}
+    per_ref: dict[str, dict[str, Any]] = {
+        ref: {k: _mean_or_none([rr[ref][k] for rr in rows_runs]) for k in rows_runs[0][ref]} for ref in rows_runs[0]
+    }
     for ref in per_ref:
         per_ref[ref]["tracking_cost_per_run"] = [rr[ref]["tracking_cost"] for rr in rows_runs]
     run_costs = [float(np.mean([r["tracking_cost"] for r in rr.values()])) for rr in rows_runs]
