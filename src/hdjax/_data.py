@@ -470,6 +470,41 @@ def load_dataset(folder_or_yaml: str | os.PathLike) -> Dataset:
     """
     yaml_path = _dataset_yaml_path(folder_or_yaml)
     folder = yaml_path.parent
+    doc = _read_dataset_doc(yaml_path)
+    entries = _experiment_entries(doc, yaml_path)
+
+    modes, files, starts, paths = [], [], [], []
+    seen: dict[pathlib.Path, int] = {}
+    for i, entry in enumerate(entries):
+        file, mode, start, path = _parse_entry(doc, i, entry, folder, yaml_path, seen)
+        modes.append(mode)
+        files.append(file)
+        starts.append(float(start))
+        paths.append(path)
+
+    drive = _parse_drive(doc, yaml_path, modes)
+
+    experiments = []
+    for path, mode, start in zip(paths, modes, starts):
+        cols = _read_csv(path, mode)
+        experiments.append(_experiment_from_columns(cols, mode, start))
+
+    name = doc.get("name")
+    return Dataset(
+        name=folder.name if name is None else str(name),
+        folder=folder,
+        drive=drive,
+        experiments=experiments,
+        files=files,
+        modes=modes,
+        start_times=starts,
+        truth=_read_truth(folder),
+    )
+
+
+def _read_dataset_doc(yaml_path: pathlib.Path) -> dict:
+    """The dataset YAML's top-level mapping; warns about unknown top-level keys that look like
+    misspelled known ones."""
     doc = _read_yaml(yaml_path, "dataset YAML")
     if not isinstance(doc, dict):
         raise _error(
@@ -483,10 +518,13 @@ def load_dataset(folder_or_yaml: str | os.PathLike) -> Dataset:
             warnings.warn(
                 f"{yaml_path}: ignoring unknown top-level key `{k}`{_did_you_mean(str(k), _TOP_KEYS)}.",
                 DatasetWarning,
-                stacklevel=2,
+                stacklevel=3,  # the caller of `load_dataset`
             )
+    return doc
 
-    # --- experiments list
+
+def _experiment_entries(doc: dict, yaml_path: pathlib.Path) -> list:
+    """The `experiments` list, refused when missing, not a list or empty."""
     if "experiments" not in doc:
         raise _error(
             yaml_path,
@@ -509,106 +547,116 @@ def load_dataset(folder_or_yaml: str | os.PathLike) -> Dataset:
             "the `experiments` list is empty",
             "Add at least one `- file: <csv>` / `mode: ...` entry.",
         )
+    return entries
 
-    modes, files, starts, paths = [], [], [], []
-    seen: dict[pathlib.Path, int] = {}
-    for i, entry in enumerate(entries):
-        field = f"experiments[{i}]"
-        if not isinstance(entry, dict):
-            raise _error(
-                yaml_path,
-                _yaml_where(doc, "experiments", field),
-                f"experiment entry {i} is {entry!r}, not a mapping",
-                "Write each entry as `- file: <csv>` followed by `mode: constrained|free|friction`.",
-            )
-        unknown = [k for k in entry if k not in _ENTRY_KEYS]
-        if unknown:
-            hints = ", ".join(f"`{k}`{_did_you_mean(str(k), _ENTRY_KEYS)}" for k in unknown)
-            warnings.warn(
-                f"{yaml_path}, {_yaml_where(entry, unknown[0], field)}: ignoring unknown key(s) {hints}; "
-                f"known keys are {list(_ENTRY_KEYS)}.",
-                DatasetWarning,
-                stacklevel=2,
-            )
-        for key, fix in (
-            ("file", "Add `file: <csv path relative to dataset.yaml>`."),
-            ("mode", f"Add `mode:` with one of {', '.join(MODES)}."),
-        ):
-            if key not in entry or entry[key] is None:
-                raise _error(
-                    yaml_path,
-                    _yaml_where(entry, None, f"{field}.{key}"),
-                    f"experiment entry {i} has no `{key}`{_misspelled(key, unknown)}",
-                    fix,
-                )
-        file, mode = entry["file"], entry["mode"]
-        if not isinstance(file, str) or not file.strip():
-            raise _error(
-                yaml_path,
-                _yaml_where(entry, "file", f"{field}.file"),
-                f"`file` must be a non-empty path string, got {file!r}",
-                "Give the CSV path relative to dataset.yaml.",
-            )
-        if mode not in MODES:
-            raise _error(
-                yaml_path,
-                _yaml_where(entry, "mode", f"{field}.mode"),
-                f"unknown mode {mode!r}{_did_you_mean(str(mode), MODES)}",
-                f"Use one of: {', '.join(MODES)}.",
-            )
-        start = entry.get("start_time", 0.0)
-        if start is None:
-            start = 0.0
-        if not _is_number(start) or start < 0:
-            raise _error(
-                yaml_path,
-                _yaml_where(entry, "start_time", f"{field}.start_time"),
-                f"`start_time` is {start!r}, not a finite non-negative number",
-                "Give the seconds since the session began (e.g. `start_time: 120.0`), or leave it out for 0.",
-            )
-        path = _resolve_member(folder, file, yaml_path, _yaml_where(entry, "file", f"{field}.file"))
-        if path in seen:
-            raise _error(
-                yaml_path,
-                _yaml_where(entry, "file", f"{field}.file"),
-                f"file `{file}` is listed twice (also as experiments[{seen[path]}])",
-                "List each CSV once; copy the file if you really mean to use the same record twice.",
-            )
-        seen[path] = i
-        if not path.is_file():
-            raise _error(
-                path,
-                f"named in {yaml_path} {_yaml_where(entry, 'file', f'{field}.file')}",
-                "the CSV file does not exist",
-                "Fix the `file` path (relative to dataset.yaml) or add the file.",
-            )
-        modes.append(mode)
-        files.append(file)
-        starts.append(float(start))
-        paths.append(path)
 
-    drive = _parse_drive(doc, yaml_path, modes)
-
-    experiments = []
-    for path, mode, start in zip(paths, modes, starts):
-        cols = _read_csv(path, mode)
-        if mode == "friction":
-            exp = make_friction_experiment(
-                cols["time"], cols["velocity"], cols["friction_torque"], position=cols.get("position"), start_time=start
+def _parse_entry(doc: dict, i: int, entry, folder: pathlib.Path, yaml_path: pathlib.Path, seen: dict):
+    """Experiment entry `i`: its `file`, `mode`, `start_time` (s, 0 when absent) and resolved CSV
+    path, which must exist, lie inside `folder` and not be listed twice (`seen`: path → entry,
+    updated); warns about unknown keys."""
+    field = f"experiments[{i}]"
+    if not isinstance(entry, dict):
+        raise _error(
+            yaml_path,
+            _yaml_where(doc, "experiments", field),
+            f"experiment entry {i} is {entry!r}, not a mapping",
+            "Write each entry as `- file: <csv>` followed by `mode: constrained|free|friction`.",
+        )
+    unknown = [k for k in entry if k not in _ENTRY_KEYS]
+    if unknown:
+        hints = ", ".join(f"`{k}`{_did_you_mean(str(k), _ENTRY_KEYS)}" for k in unknown)
+        warnings.warn(
+            f"{yaml_path}, {_yaml_where(entry, unknown[0], field)}: ignoring unknown key(s) {hints}; "
+            f"known keys are {list(_ENTRY_KEYS)}.",
+            DatasetWarning,
+            stacklevel=3,  # the caller of `load_dataset`
+        )
+    for key, fix in (
+        ("file", "Add `file: <csv path relative to dataset.yaml>`."),
+        ("mode", f"Add `mode:` with one of {', '.join(MODES)}."),
+    ):
+        if key not in entry or entry[key] is None:
+            raise _error(
+                yaml_path,
+                _yaml_where(entry, None, f"{field}.{key}"),
+                f"experiment entry {i} has no `{key}`{_misspelled(key, unknown)}",
+                fix,
             )
-        else:
-            exp = make_experiment(
-                cols["time"],
-                cols["current"],
-                cols["torque"],
-                cols["motor_velocity"],
-                mode=mode,
-                output_position=cols.get("output_position"),
-                motor_position=cols.get("motor_position"),
-                start_time=start,
-            )
-        experiments.append(exp)
+    file, mode = entry["file"], entry["mode"]
+    _check_file_and_mode(file, mode, entry, field, yaml_path)
+    start = entry.get("start_time", 0.0)
+    if start is None:
+        start = 0.0
+    if not _is_number(start) or start < 0:
+        raise _error(
+            yaml_path,
+            _yaml_where(entry, "start_time", f"{field}.start_time"),
+            f"`start_time` is {start!r}, not a finite non-negative number",
+            "Give the seconds since the session began (e.g. `start_time: 120.0`), or leave it out for 0.",
+        )
+    path = _entry_path(folder, file, entry, field, yaml_path, seen)
+    seen[path] = i
+    return file, mode, start, path
 
+
+def _check_file_and_mode(file, mode, entry: dict, field: str, yaml_path: pathlib.Path) -> None:
+    """Refuse a `file` that is not a non-empty string and a `mode` outside `MODES`."""
+    if not isinstance(file, str) or not file.strip():
+        raise _error(
+            yaml_path,
+            _yaml_where(entry, "file", f"{field}.file"),
+            f"`file` must be a non-empty path string, got {file!r}",
+            "Give the CSV path relative to dataset.yaml.",
+        )
+    if mode not in MODES:
+        raise _error(
+            yaml_path,
+            _yaml_where(entry, "mode", f"{field}.mode"),
+            f"unknown mode {mode!r}{_did_you_mean(str(mode), MODES)}",
+            f"Use one of: {', '.join(MODES)}.",
+        )
+
+
+def _entry_path(folder: pathlib.Path, file: str, entry: dict, field: str, yaml_path: pathlib.Path, seen: dict):
+    """The CSV path of an entry, inside `folder`, listed once (`seen`) and existing."""
+    path = _resolve_member(folder, file, yaml_path, _yaml_where(entry, "file", f"{field}.file"))
+    if path in seen:
+        raise _error(
+            yaml_path,
+            _yaml_where(entry, "file", f"{field}.file"),
+            f"file `{file}` is listed twice (also as experiments[{seen[path]}])",
+            "List each CSV once; copy the file if you really mean to use the same record twice.",
+        )
+    if not path.is_file():
+        raise _error(
+            path,
+            f"named in {yaml_path} {_yaml_where(entry, 'file', f'{field}.file')}",
+            "the CSV file does not exist",
+            "Fix the `file` path (relative to dataset.yaml) or add the file.",
+        )
+    return path
+
+
+def _experiment_from_columns(cols: dict[str, np.ndarray], mode: str, start: float):
+    """An `Experiment` (friction or dynamic, by `mode`) from a CSV's SI columns, starting at `start` (s)."""
+    if mode == "friction":
+        return make_friction_experiment(
+            cols["time"], cols["velocity"], cols["friction_torque"], position=cols.get("position"), start_time=start
+        )
+    return make_experiment(
+        cols["time"],
+        cols["current"],
+        cols["torque"],
+        cols["motor_velocity"],
+        mode=mode,
+        output_position=cols.get("output_position"),
+        motor_position=cols.get("motor_position"),
+        start_time=start,
+    )
+
+
+def _read_truth(folder: pathlib.Path) -> dict | None:
+    """The folder's truth.yaml as plain Python values, or None when there is none (or it is empty)."""
     truth = None
     truth_path = folder / TRUTH_FILE
     if truth_path.is_file():
@@ -621,18 +669,7 @@ def load_dataset(folder_or_yaml: str | os.PathLike) -> Dataset:
                 "Write `key: value` pairs at the top level, or remove truth.yaml.",
             )
         truth = _plain(truth) if truth is not None else None
-
-    name = doc.get("name")
-    return Dataset(
-        name=folder.name if name is None else str(name),
-        folder=folder,
-        drive=drive,
-        experiments=experiments,
-        files=files,
-        modes=modes,
-        start_times=starts,
-        truth=truth,
-    )
+    return truth
 
 
 # ----------------------------------------------------------------------------------------------
@@ -650,7 +687,21 @@ def _is_float(s: str) -> bool:
 
 def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
     """Read one experiment CSV; returns the required and present optional columns as float64."""
-    required, optional = COLUMNS[mode]
+    required, _ = COLUMNS[mode]
+    header, header_line, rows, lines = _csv_rows(path)
+    if header is None:
+        raise _error(path, None, "the CSV is empty", f"Write a header row ({', '.join(required)}) and the samples.")
+    names = [h.strip() for h in header]
+    used = _check_header(path, names, header_line, mode)
+    data = _parse_cells(path, rows, lines, names, used)
+    cols = {n: data[:, c] for c, n in enumerate(used)}
+    _check_time(path, cols["time"], lines)
+    return cols
+
+
+def _csv_rows(path: pathlib.Path) -> tuple[list[str] | None, int, list[list[str]], list[int]]:
+    """The header row (None if the file has no row), its line number, and the data rows with their
+    line numbers; blank lines are skipped."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.reader(f)
@@ -675,10 +726,13 @@ def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
         raise _error(path, line, f"malformed CSV ({e})", "Fix the quoting on that line.") from None
     except OSError as e:
         raise _error(path, None, f"cannot be read ({e})", "Check the file's permissions.") from None
+    return header, header_line, rows, lines
 
-    if header is None:
-        raise _error(path, None, "the CSV is empty", f"Write a header row ({', '.join(required)}) and the samples.")
-    names = [h.strip() for h in header]
+
+def _check_header(path: pathlib.Path, names: list[str], header_line: int, mode: str) -> list[str]:
+    """The header's columns that `mode` uses, in file order; refuses a missing, nameless, duplicate
+    or missing required column and warns about columns it ignores."""
+    required, optional = COLUMNS[mode]
     if all(_is_float(h) for h in names):
         raise _error(
             path,
@@ -702,9 +756,22 @@ def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
             "duplicate column name(s) in the header",
             "Rename or remove the duplicates so each column appears once.",
         )
-
     known = set(required) | set(optional)
     extra = [n for n in names if n not in known]
+    _check_required_columns(path, names, header_line, mode, extra)
+    if extra:
+        hints = ", ".join(f"`{n}`{_did_you_mean(n, [o for o in optional if o not in names])}" for n in extra)
+        warnings.warn(
+            f"{path}: ignoring column(s) not used by {mode} experiments: {hints}.",
+            DatasetWarning,
+            stacklevel=4,  # the caller of `load_dataset`
+        )
+    return [n for n in names if n in known]
+
+
+def _check_required_columns(path: pathlib.Path, names: list[str], header_line: int, mode: str, extra: list[str]) -> None:
+    """Refuse a header that lacks a column `mode` requires, naming its unit and a near miss in `extra`."""
+    required, optional = COLUMNS[mode]
     missing = [n for n in required if n not in names]
     if missing:
         parts = [f"`{m}` ({_UNITS[m]}){_misspelled(m, extra)}" for m in missing]
@@ -721,15 +788,11 @@ def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
             + "."
             + hint,
         )
-    if extra:
-        hints = ", ".join(f"`{n}`{_did_you_mean(n, [o for o in optional if o not in names])}" for n in extra)
-        warnings.warn(
-            f"{path}: ignoring column(s) not used by {mode} experiments: {hints}.",
-            DatasetWarning,
-            stacklevel=3,
-        )
 
-    used = [n for n in names if n in known]
+
+def _parse_cells(path: pathlib.Path, rows: list[list[str]], lines: list[int], names: list[str], used: list[str]) -> np.ndarray:
+    """The `used` columns of the data rows as float64 (row, column); refuses a row of the wrong
+    length and an empty, non-numeric or non-finite cell, naming line and column."""
     index = {n: names.index(n) for n in used}
     data = np.empty((len(rows), len(used)))
     for r, (row, line) in enumerate(zip(rows, lines)):
@@ -762,10 +825,7 @@ def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
                     "hdjax does not drop or interpolate samples.",
                 )
             data[r, c] = v
-
-    cols = {n: data[:, c] for c, n in enumerate(used)}
-    _check_time(path, cols["time"], lines)
-    return cols
+    return data
 
 
 def _check_time(path, time: np.ndarray, lines: list[int]) -> None:
@@ -959,6 +1019,36 @@ def write_dataset(
     (temporary name, then rename); `dataset.yaml` last. Returns the folder path.
     """
     folder = pathlib.Path(folder).expanduser().resolve()
+    _check_write_counts(folder, experiments, modes, files, start_times)
+    yaml_path = folder / DATASET_FILE
+    targets = _write_targets(folder, yaml_path, experiments, modes, files)
+    _check_write_drive(drive, modes, yaml_path)
+
+    entries = []
+    for i, (exp, mode, file, path) in enumerate(zip(experiments, modes, files, targets)):
+        cols = _experiment_columns(exp, mode, i, yaml_path)
+        _write_experiment_csv(path, cols, digits)
+        start = float(exp.start_time) if start_times is None else float(start_times[i])
+        entry: dict[str, Any] = {"file": file, "mode": mode}
+        if start != 0.0:
+            entry["start_time"] = start
+        entries.append(entry)
+
+    doc: dict[str, Any] = {"name": str(name)}
+    if drive is not None:
+        d = {"gear_ratio": float(drive.gear_ratio), "torque_constant": float(drive.torque_constant)}
+        if float(drive.load_inertia) > 0:
+            d["load_inertia"] = float(drive.load_inertia)
+        doc["drive"] = d
+    doc["experiments"] = entries
+    if truth is not None:
+        _atomic_write(folder / TRUTH_FILE, yaml.safe_dump(_yaml_value(truth), sort_keys=False, allow_unicode=True))
+    _atomic_write(yaml_path, yaml.safe_dump(doc, sort_keys=False, allow_unicode=True))
+    return folder
+
+
+def _check_write_counts(folder: pathlib.Path, experiments: list, modes: list, files: list, start_times) -> None:
+    """Refuse mismatched counts of experiments, modes, files and start times, and no experiments."""
     n = len(experiments)
     if len(modes) != n or len(files) != n or (start_times is not None and len(start_times) != n):
         raise DatasetError(
@@ -968,7 +1058,11 @@ def write_dataset(
         )
     if n == 0:
         raise DatasetError(f"`write_dataset` ({folder}): no experiments given; a dataset needs at least one.")
-    yaml_path = folder / DATASET_FILE
+
+
+def _write_targets(folder: pathlib.Path, yaml_path: pathlib.Path, experiments: list, modes: list, files: list) -> list:
+    """The CSV path of each experiment, after checking its mode against its type and `free` flag
+    and its file name (non-empty, inside `folder`, given once)."""
     targets = []
     for i, (exp, mode, file) in enumerate(zip(experiments, modes, files)):
         where = f"`files[{i}]`"
@@ -995,6 +1089,12 @@ def write_dataset(
         if path in targets:
             raise _error(yaml_path, where, f"file `{file}` is given twice", "Give each experiment its own file.")
         targets.append(path)
+    return targets
+
+
+def _check_write_drive(drive: Drive | None, modes: list[str], yaml_path: pathlib.Path) -> None:
+    """Refuse a missing drive with constrained or free experiments, and a load inertia (kg·m²) that
+    is not positive with free ones."""
     if drive is None and any(m != "friction" for m in modes):
         raise DatasetError(
             f"`write_dataset` ({yaml_path}): `drive` is None but there are constrained or free experiments; "
@@ -1006,56 +1106,47 @@ def write_dataset(
             "free-motion experiments; give a positive load inertia (kg·m²)."
         )
 
-    entries = []
-    for i, (exp, mode, file, path) in enumerate(zip(experiments, modes, files, targets)):
-        mask = np.asarray(exp.mask, dtype=bool)
-        if mask.ndim != 1:
+
+def _experiment_columns(exp, mode: str, i: int, yaml_path: pathlib.Path) -> dict[str, np.ndarray]:
+    """The CSV columns (SI, float64, padding dropped) of unbatched experiment `i`: the required
+    ones of `mode` and the measured optional ones."""
+    mask = np.asarray(exp.mask, dtype=bool)
+    if mask.ndim != 1:
+        raise _error(
+            yaml_path, f"`experiments[{i}]`", "the experiment is batched", "Unstack it into single experiments."
+        )
+
+    def col(a, mask=mask):
+        return np.asarray(a, dtype=np.float64)[mask]
+
+    if mode == "friction":
+        cols = {"time": col(exp.time), "velocity": col(exp.velocity), "friction_torque": col(exp.friction_torque)}
+        if float(exp.has_position):
+            cols["position"] = col(exp.position)
+    else:
+        cols = {
+            "time": col(exp.time),
+            "current": col(exp.current),
+            "motor_velocity": col(exp.motor_velocity),
+            "torque": col(exp.torque),
+        }
+        if mode == "free" or float(exp.has_output_position):
+            cols["output_position"] = col(exp.output_position)
+        if float(exp.has_motor_position):
+            cols["motor_position"] = col(exp.motor_position)
+    return cols
+
+
+def _write_experiment_csv(path: pathlib.Path, cols: dict[str, np.ndarray], digits: int | None) -> None:
+    """Write one experiment's CSV atomically, refusing NaN or inf and a time column `load_dataset`
+    would refuse."""
+    for k, v in cols.items():
+        if not np.all(np.isfinite(v)):
             raise _error(
-                yaml_path, f"`experiments[{i}]`", "the experiment is batched", "Unstack it into single experiments."
+                path,
+                f"column `{k}`",
+                f"refusing to write NaN or inf (sample {int(np.argmin(np.isfinite(v)))})",
+                "Pass finite data.",
             )
-
-        def col(a, mask=mask):
-            return np.asarray(a, dtype=np.float64)[mask]
-
-        if mode == "friction":
-            cols = {"time": col(exp.time), "velocity": col(exp.velocity), "friction_torque": col(exp.friction_torque)}
-            if float(exp.has_position):
-                cols["position"] = col(exp.position)
-        else:
-            cols = {
-                "time": col(exp.time),
-                "current": col(exp.current),
-                "motor_velocity": col(exp.motor_velocity),
-                "torque": col(exp.torque),
-            }
-            if mode == "free" or float(exp.has_output_position):
-                cols["output_position"] = col(exp.output_position)
-            if float(exp.has_motor_position):
-                cols["motor_position"] = col(exp.motor_position)
-        for k, v in cols.items():
-            if not np.all(np.isfinite(v)):
-                raise _error(
-                    path,
-                    f"column `{k}`",
-                    f"refusing to write NaN or inf (sample {int(np.argmin(np.isfinite(v)))})",
-                    "Pass finite data.",
-                )
-        _check_time(path, cols["time"], list(range(2, len(cols["time"]) + 2)))
-        _atomic_write(path, _csv_text(cols, digits))
-        start = float(exp.start_time) if start_times is None else float(start_times[i])
-        entry: dict[str, Any] = {"file": file, "mode": mode}
-        if start != 0.0:
-            entry["start_time"] = start
-        entries.append(entry)
-
-    doc: dict[str, Any] = {"name": str(name)}
-    if drive is not None:
-        d = {"gear_ratio": float(drive.gear_ratio), "torque_constant": float(drive.torque_constant)}
-        if float(drive.load_inertia) > 0:
-            d["load_inertia"] = float(drive.load_inertia)
-        doc["drive"] = d
-    doc["experiments"] = entries
-    if truth is not None:
-        _atomic_write(folder / TRUTH_FILE, yaml.safe_dump(_yaml_value(truth), sort_keys=False, allow_unicode=True))
-    _atomic_write(yaml_path, yaml.safe_dump(doc, sort_keys=False, allow_unicode=True))
-    return folder
+    _check_time(path, cols["time"], list(range(2, len(cols["time"]) + 2)))
+    _atomic_write(path, _csv_text(cols, digits))

@@ -88,7 +88,6 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     opts = _options(config)
     out = pathlib.Path(out)
     drive, exps, files, modes = dataset.dynamic_part("fit")
-    dyn = dataset.dynamic_indices()
     notes: list[str] = []
 
     log(f"[1/4] paper's identification (regressions, vmap over {len(exps)} experiments)")
@@ -97,8 +96,61 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     t_paper = time.time() - t0
     notes += paper.notes
     p0 = paper.parameters()
+    free_names, undetermined = _free_and_undetermined(opts, modes, paper)
 
-    # structural identifiability: what the experiment types can determine
+    log("[2/4] joint trajectory-error fit (optimistix Levenberg–Marquardt through the diffrax plant)")
+    sim_fit = trajectory_simulator(opts["trajectory"])
+    res, sel_pos, t_traj = _joint_fit(dataset, exps, drive, p0, free_names, sim_fit, opts, notes, log)
+    full = stack_experiments(exps)
+    per_fit, t_per = _per_experiment_fits(paper, res, drive, full, files, sim_fit, opts, notes, log)
+    _lm_notes(res, undetermined, notes)
+
+    log(f"[3/4] simulating all {len(exps)} experiments with the fitted parameters")
+    t0 = time.time()
+    # at the fit's own ODE tolerance (≤ 0.1 noise std from an rtol-1e-8 reference on HD2); arrays are
+    # passed as arguments, not closed over as constants
+    traj = eqx.filter_jit(simulate_batch)(res.params, drive, full, simulator=sim_fit)
+    t_sim = time.time() - t0
+    per_exp, overall = _simulation_nrmse(traj, full, files, modes)
+    truth = (dataset.truth or {}).get("parameters") if dataset.truth else None
+    params_json = _parameters_json(res, paper, per_fit, undetermined, truth)
+
+    log("[4/4] report and figures")
+    from ._plots import fit_figures  # matplotlib loads only when figures are drawn
+    figs = fit_figures(out, res.params, paper, full, traj, modes, files, drive, exps)
+    total = time.time() - t_start
+    result = {
+        "schema": "hdjax.fit/1",
+        "dataset": dataset.name,
+        "parameters": params_json,
+        "fit": _fit_section(res, overall, per_exp, [files[j] for j in sel_pos]),
+        "paper_identification": paper.to_dict(),
+        "consistency_note": (
+            "`consistency` is the paper's measure, std/|mean| of per-experiment estimates. For fitted parameters it "
+            "comes from one trajectory-error LM fit per experiment (`per_experiment`, aligned with "
+            "`fit.per_experiment`; null where the experiment does not inform the parameter or LM did not converge); "
+            "`paper_method` holds the paper's regressions and their consistency."
+        ),
+        "per_experiment_fit": None if per_fit is None else {
+            "parameters": list(per_fit.free),
+            "converged": [bool(c) if per_fit.mask[j].any() else None for j, c in enumerate(per_fit.converged)],
+            "lm_steps": [int(x) for x in per_fit.steps],
+            "chi2_reduced": [float(x) for x in per_fit.chi2_reduced],
+        },
+        "notes": notes,
+        "figures": figs,
+        "timing_s": {"total": total, "paper_identification": t_paper, "trajectory_fit": t_traj,
+                     "per_experiment_fits": t_per, "simulate_all": t_sim},
+    }
+    atomic_write_json(out / "fit.json", result)
+    atomic_write_text(out / "report.md", _report(result, truth))
+    log(f"wrote {out / 'fit.json'} and {out / 'report.md'} in {total:.1f} s")
+    return result
+
+
+def _free_and_undetermined(opts: dict, modes: list[str], paper) -> tuple[list[str], dict[str, str]]:
+    """Structural identifiability: the parameters the joint fit frees, and why each parameter the
+    experiment types cannot determine is left out (name → reason)."""
     free_names = [k for k in opts["trajectory"]["free"] if k in PARAMETER_NAMES]
     if opts["trajectory"]["fit_alpha"] and "alpha" not in free_names:
         free_names.append("alpha")
@@ -114,9 +166,13 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
             undetermined.setdefault(
                 k, "no low-velocity experiments in this direction (median |ω| below 5·Tss2); record slow runs"
             )
-    free_names = [k for k in free_names if k not in undetermined]
+    return [k for k in free_names if k not in undetermined], undetermined
 
-    log("[2/4] joint trajectory-error fit (optimistix Levenberg–Marquardt through the diffrax plant)")
+
+def _joint_fit(dataset: Dataset, exps, drive, p0, free_names, sim_fit, opts, notes, log):
+    """The joint trajectory-error LM fit on an evenly spread subset of the experiments, from the
+    paper's estimates `p0`. Returns the fit, the positions of the experiments used, and its time (s)."""
+    dyn = dataset.dynamic_indices()
     sel = _select(dataset, dyn, int(opts["trajectory"]["max_experiments"]))
     sel_pos = [dyn.index(i) for i in sel]
     if len(sel) < len(dyn):
@@ -126,43 +182,52 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
             f"for the NRMSE figures."
         )
     batch = stack_experiments([exps[j] for j in sel_pos])
-    sim_fit = trajectory_simulator(opts["trajectory"])
     t0 = time.time()
-    cost_rtol = float(opts["trajectory"]["cost_rtol"])
-    step_se_tol = float(opts["trajectory"]["step_se_tol"])
     res = fit_parameters(
         p0, drive, batch, free=free_names, simulator=sim_fit, max_steps=int(opts["trajectory"]["max_steps"]),
-        cost_rtol=cost_rtol, step_se_tol=step_se_tol,
+        cost_rtol=float(opts["trajectory"]["cost_rtol"]), step_se_tol=float(opts["trajectory"]["step_se_tol"]),
     )
     t_traj = time.time() - t0
     log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({t_traj:.1f} s)")
+    return res, sel_pos, t_traj
 
-    # the trajectory method's consistency: one LM fit per experiment (one JIT), each experiment fitting
-    # what the paper's regressions take from it (locked: K1, Tst; fast free motion: Jeff and the
-    # viscous/Coulomb terms of the directions it covers; slow free motion: Stribeck), the rest fixed
-    # at the joint estimate
+
+def _per_experiment_fits(paper, res, drive, full, files, sim_fit, opts, notes, log):
+    """The trajectory method's consistency: one LM fit per experiment (one JIT), each experiment
+    fitting what the paper's regressions take from it (locked: K1, Tst; fast free motion: Jeff and
+    the viscous/Coulomb terms of the directions it covers; slow free motion: Stribeck), the rest
+    fixed at the joint estimate. Returns the fits (None when off or no experiment informs a
+    parameter) and their time (s)."""
     per_fit, t_per = None, 0.0
-    full = stack_experiments(exps)
-    if opts["trajectory"]["per_experiment"]:
-        mask = np.array([[np.isfinite(paper.per_experiment[k][j]) for k in res.free] for j in range(len(exps))], dtype=bool)
-        informed = np.any(mask, axis=1)
-        if informed.any():
-            log(f"[2b/4] per-experiment trajectory-error fits ({int(informed.sum())} experiments, one JIT)")
-            t0 = time.time()
-            per_fit = fit_per_experiment(
-                res.params, drive, full, mask, free=res.free, simulator=sim_fit, sigma=res.sigma,
-                max_steps=int(opts["trajectory"]["per_experiment_max_steps"]),
-                cost_rtol=cost_rtol, step_se_tol=step_se_tol,
-            )
-            t_per = time.time() - t0
-            bad = [files[j] for j in range(len(exps)) if informed[j] and not per_fit.converged[j]]
-            if bad:
-                notes.append(
-                    f"per-experiment trajectory fit: Levenberg–Marquardt did not converge within "
-                    f"{opts['trajectory']['per_experiment_max_steps']} steps for {', '.join(bad)} "
-                    "(`fit.trajectory.per_experiment_max_steps`); these are left out of the consistency measure."
-                )
-            log(f"      {int(per_fit.converged[informed].sum())}/{int(informed.sum())} converged ({t_per:.1f} s)")
+    if not opts["trajectory"]["per_experiment"]:
+        return per_fit, t_per
+    n_exp = len(files)
+    mask = np.array([[np.isfinite(paper.per_experiment[k][j]) for k in res.free] for j in range(n_exp)], dtype=bool)
+    informed = np.any(mask, axis=1)
+    if not informed.any():
+        return per_fit, t_per
+    log(f"[2b/4] per-experiment trajectory-error fits ({int(informed.sum())} experiments, one JIT)")
+    t0 = time.time()
+    per_fit = fit_per_experiment(
+        res.params, drive, full, mask, free=res.free, simulator=sim_fit, sigma=res.sigma,
+        max_steps=int(opts["trajectory"]["per_experiment_max_steps"]),
+        cost_rtol=float(opts["trajectory"]["cost_rtol"]), step_se_tol=float(opts["trajectory"]["step_se_tol"]),
+    )
+    t_per = time.time() - t0
+    bad = [files[j] for j in range(n_exp) if informed[j] and not per_fit.converged[j]]
+    if bad:
+        notes.append(
+            f"per-experiment trajectory fit: Levenberg–Marquardt did not converge within "
+            f"{opts['trajectory']['per_experiment_max_steps']} steps for {', '.join(bad)} "
+            "(`fit.trajectory.per_experiment_max_steps`); these are left out of the consistency measure."
+        )
+    log(f"      {int(per_fit.converged[informed].sum())}/{int(informed.sum())} converged ({t_per:.1f} s)")
+    return per_fit, t_per
+
+
+def _lm_notes(res, undetermined: dict[str, str], notes: list[str]) -> None:
+    """A note when the joint fit stopped short of its tolerance; a parameter whose standard error
+    is not finite or over 30 % of its estimate is marked undetermined."""
     if not res.converged:
         notes.append(
             f"Levenberg–Marquardt did not reach its tolerance within {res.steps} steps (`fit.trajectory.max_steps`); "
@@ -173,16 +238,14 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
         if not np.isfinite(se) or (v != 0 and se / abs(v) > 0.3):
             undetermined.setdefault(k, f"standard error {se:.3g} is over 30 % of the estimate {v:.3g}: the data do not pin it down")
 
-    log(f"[3/4] simulating all {len(exps)} experiments with the fitted parameters")
-    t0 = time.time()
-    # at the fit's own ODE tolerance (≤ 0.1 noise std from an rtol-1e-8 reference on HD2); arrays are
-    # passed as arguments, not closed over as constants
-    traj = eqx.filter_jit(simulate_batch)(res.params, drive, full, simulator=sim_fit)
-    t_sim = time.time() - t0
+
+def _simulation_nrmse(traj, full, files, modes) -> tuple[list[dict], dict[str, float]]:
+    """NRMSE of the simulated torque (N·m), motor velocity (rad/s) and, for free experiments,
+    output position (rad) against the measurements: one row per experiment, and pooled over all."""
     m = np.asarray(full.mask)
     per_exp = []
     pooled = {"torque": ([], []), "motor_velocity": ([], [])}
-    for j in range(len(exps)):
+    for j in range(len(files)):
         row = {"file": files[j], "mode": modes[j], "nrmse": {}, "simulation_ok": bool(traj.success[j])}
         for ch in ("torque", "motor_velocity"):
             s = np.asarray(getattr(traj, ch)[j])[m[j]]
@@ -196,8 +259,13 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
             row["nrmse"]["output_position"] = nrmse(s, y)
         per_exp.append(row)
     overall = {ch: nrmse(np.concatenate(a), np.concatenate(b)) for ch, (a, b) in pooled.items()}
+    return per_exp, overall
 
-    truth = (dataset.truth or {}).get("parameters") if dataset.truth else None
+
+def _parameters_json(res, paper, per_fit, undetermined: dict[str, str], truth) -> dict[str, dict]:
+    """fit.json's `parameters`: per parameter the joint estimate (SI, with its unit) and standard
+    error, the consistency (the trajectory method's where per-experiment fits ran, else the
+    paper's), the paper method's numbers, why it is undetermined, and the truth where known."""
     params_json = {}
     for k in PARAMETER_NAMES:
         traj_per = per_fit.per_experiment(k) if per_fit is not None and k in per_fit.free else None
@@ -222,48 +290,23 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
         if truth and k in truth:
             entry["truth"] = float(truth[k])
         params_json[k] = entry
+    return params_json
 
-    log("[4/4] report and figures")
-    from ._plots import fit_figures  # matplotlib loads only when figures are drawn
-    figs = fit_figures(out, res.params, paper, full, traj, modes, files, drive, exps)
-    total = time.time() - t_start
-    result = {
-        "schema": "hdjax.fit/1",
-        "dataset": dataset.name,
-        "parameters": params_json,
-        "fit": {
-            "nrmse": overall,
-            "per_experiment": per_exp,
-            "chi2_reduced": res.chi2_reduced,
-            "converged": res.converged,
-            "lm_steps": res.steps,
-            "lm_stop_reason": res.stop_reason,
-            "experiments_in_fit": [files[j] for j in sel_pos],
-            "noise_levels": dict(zip(("torque", "motor_velocity", "output_position"), res.sigma.tolist())),
-            "correlation": {"parameters": list(res.free), "matrix": res.correlation.tolist()},
-        },
-        "paper_identification": paper.to_dict(),
-        "consistency_note": (
-            "`consistency` is the paper's measure, std/|mean| of per-experiment estimates. For fitted parameters it "
-            "comes from one trajectory-error LM fit per experiment (`per_experiment`, aligned with "
-            "`fit.per_experiment`; null where the experiment does not inform the parameter or LM did not converge); "
-            "`paper_method` holds the paper's regressions and their consistency."
-        ),
-        "per_experiment_fit": None if per_fit is None else {
-            "parameters": list(per_fit.free),
-            "converged": [bool(c) if per_fit.mask[j].any() else None for j, c in enumerate(per_fit.converged)],
-            "lm_steps": [int(x) for x in per_fit.steps],
-            "chi2_reduced": [float(x) for x in per_fit.chi2_reduced],
-        },
-        "notes": notes,
-        "figures": figs,
-        "timing_s": {"total": total, "paper_identification": t_paper, "trajectory_fit": t_traj,
-                     "per_experiment_fits": t_per, "simulate_all": t_sim},
+
+def _fit_section(res, overall: dict, per_exp: list[dict], experiments_in_fit: list[str]) -> dict:
+    """fit.json's `fit`: pooled and per-experiment NRMSE, the LM outcome, the noise levels (N·m,
+    rad/s, rad) and the correlation matrix of the freed parameters."""
+    return {
+        "nrmse": overall,
+        "per_experiment": per_exp,
+        "chi2_reduced": res.chi2_reduced,
+        "converged": res.converged,
+        "lm_steps": res.steps,
+        "lm_stop_reason": res.stop_reason,
+        "experiments_in_fit": experiments_in_fit,
+        "noise_levels": dict(zip(("torque", "motor_velocity", "output_position"), res.sigma.tolist())),
+        "correlation": {"parameters": list(res.free), "matrix": res.correlation.tolist()},
     }
-    atomic_write_json(out / "fit.json", result)
-    atomic_write_text(out / "report.md", _report(result, truth))
-    log(f"wrote {out / 'fit.json'} and {out / 'report.md'} in {total:.1f} s")
-    return result
 
 
 def _finite_or_none(v):

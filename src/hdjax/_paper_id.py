@@ -376,6 +376,223 @@ def _fmt(idx) -> str:
 
 
 # --------------------------------------------------------------------------------------------
+# Stages of `identify_paper`
+
+
+def _check_options(alpha, Tss2, alpha_bounds, nonlinear) -> tuple[float, float]:
+    """The alpha bounds as floats `(lo, hi)`, after refusing an alpha outside them or a Tss2
+    (rad/s) that is not positive."""
+    lo, hi = float(alpha_bounds[0]), float(alpha_bounds[1])
+    if not lo < alpha < hi and nonlinear:
+        raise ValueError(f"`identify_paper`: alpha={alpha} must lie inside alpha_bounds={alpha_bounds}.")
+    if Tss2 <= 0:
+        raise ValueError(f"`identify_paper`: Tss2 must be positive (rad/s), got {Tss2}.")
+    return lo, hi
+
+
+def _prepare_or_nothing(experiments, drive, cutoff_hz, filter_order, notes):
+    """Stage 1: `_prepare`, or `(None, no free flags, no medians)` with a note when there are no
+    experiments. The medians are of |ω| (rad/s)."""
+    if len(experiments) == 0:
+        notes.append("no experiments given: every fitted parameter is undetermined.")
+        return None, np.zeros(0, dtype=bool), np.zeros(0)
+    return _prepare(experiments, drive, cutoff_hz, filter_order, notes)
+
+
+def _compliance_stage(prepared, constrained_idx, alpha, alpha_bounds, nonlinear, per, details, alpha_nl, notes):
+    """Stage 2, eq. 5 on the constrained experiments: K1 (N·m/rad) and Tst (N·m/(rad/s)^α) at the
+    fixed alpha into `per`, the torsion offsets (rad) into `details["torsion_offset"]`, and, with
+    `nonlinear`, the optimal alpha into `alpha_nl`."""
+    if constrained_idx.size == 0:
+        notes.append(
+            "no constrained (output-locked) experiments: K1, Tst and the optimal alpha undetermined — "
+            "record locked-output runs with a torque excursion of a good fraction of the rated torque."
+        )
+        return
+    assert prepared is not None  # None only without experiments, when every index list is empty
+    sub = _take(prepared, constrained_idx)
+    K1, Tst, c, lam = (np.asarray(x) for x in _compliance_linear(sub, alpha))
+    for j, k in enumerate(constrained_idx):
+        if not (lam[j] > _COND_FLOOR and np.isfinite(K1[j]) and np.isfinite(Tst[j])):
+            notes.append(
+                f"experiment {k} (constrained): torsion, torsion rate and offset are collinear "
+                "(no torque/velocity excursion?): K1, Tst not determined from it."
+            )
+            continue
+        per["K1"][k], per["Tst"][k] = float(K1[j]), float(Tst[j])
+        per["alpha"][k] = float(alpha)
+        details["torsion_offset"][k] = float(c[j])
+    if nonlinear:
+        _optimal_alpha_stage(sub, constrained_idx, alpha_bounds, alpha_nl, notes)
+
+
+def _optimal_alpha_stage(sub, constrained_idx, alpha_bounds, alpha_nl, notes) -> None:
+    """Stage 2a, the nonlinear eq. 5 regression: per-experiment alpha, K1 (N·m/rad), Tst
+    (N·m/(rad/s)^α) and offset (rad) into `alpha_nl`, with the mean and consistency of the
+    converged alphas."""
+    lo, hi = float(alpha_bounds[0]), float(alpha_bounds[1])
+    a, K1n, Tstn, cn, conv = (np.asarray(x) for x in _compliance_nonlinear(sub, lo, hi))
+    alpha_nl.update(
+        alpha=[float(x) for x in a], K1=[float(x) for x in K1n], Tst=[float(x) for x in Tstn],
+        offset=[float(x) for x in cn], converged=[bool(x) for x in conv],
+        indices=[int(k) for k in constrained_idx],
+    )
+    good = conv & np.isfinite(a)
+    alpha_nl["mean"] = _mean(a[good])
+    alpha_nl["consistency"] = _consistency(a[good])
+    if not np.all(conv):
+        notes.append(
+            "nonlinear compliance regression did not converge for experiment(s) "
+            f"{_fmt(constrained_idx[~conv])}; excluded from the optimal-alpha mean."
+        )
+    at_bound = good & ((a < lo + 1e-3) | (a > hi - 1e-3))
+    if np.any(at_bound):
+        notes.append(
+            f"optimal alpha reached its bound {alpha_bounds} for experiment(s) "
+            f"{_fmt(constrained_idx[at_bound])}: the damping term is poorly excited there."
+        )
+
+
+def _sample_shortage_note(k, kind, min_samples, missing, notes) -> None:
+    """Note that experiment `k` has too few samples in the velocity ranges listed in `missing`."""
+    if missing:
+        notes.append(
+            f"experiment {k} ({kind}): fewer than {min_samples} samples at "
+            + "; ".join(missing)
+            + " not determined from it."
+        )
+
+
+def _high_velocity_stage(
+    prepared, free, low_speed, Tss2, threshold, low_velocity_factor, min_samples, smoothing, per, details, notes
+):
+    """Stage 3a, eq. 8 on the fast free experiments (|ω| > `threshold` rad/s): Jeff (kg·m²), Tvp,
+    Tvn (N·m/(rad/s)), Tsp, Tsn (N·m) into `per`, sample counts per direction into `details`."""
+    n_exp = len(per["Jeff"])
+    free_idx = np.flatnonzero(free & ~low_speed)
+    details["high_velocity_samples"] = {"positive": [0] * n_exp, "negative": [0] * n_exp}
+    if free_idx.size == 0:
+        slow_free = np.flatnonzero(free & low_speed)
+        what = (
+            f"free-motion experiments ({_fmt(slow_free)}) are all low-velocity (median |ω| < "
+            f"{low_velocity_factor * Tss2:.3g} rad/s)"
+            if slow_free.size
+            else "no free-motion experiments"
+        )
+        notes.append(
+            f"{what}: Jeff, Tvp, Tvn, Tsp, Tsn undetermined — record free-motion "
+            f"runs at |ω| > {threshold:.3g} rad/s in both directions."
+        )
+        return
+    assert prepared is not None  # None only without experiments, when every index list is empty
+    sub = _take(prepared, free_idx)
+    theta, active, lam, npos, nneg = (
+        np.asarray(x) for x in _friction_high(sub, Tss2, threshold, min_samples, smoothing)
+    )
+    for j, k in enumerate(free_idx):
+        details["high_velocity_samples"]["positive"][k] = int(npos[j])
+        details["high_velocity_samples"]["negative"][k] = int(nneg[j])
+        missing = []
+        if not active[j, 1]:
+            missing.append(f"ω > {threshold:.3g} rad/s ({int(npos[j])} samples): Tvp, Tsp")
+        if not active[j, 2]:
+            missing.append(f"ω < −{threshold:.3g} rad/s ({int(nneg[j])} samples): Tvn, Tsn")
+        _sample_shortage_note(k, "free", min_samples, missing, notes)
+        if not active[j, 0]:
+            continue
+        if not (lam[j] > _COND_FLOOR and np.all(np.isfinite(theta[j]))):
+            notes.append(
+                f"experiment {k} (free): acceleration and friction regressors are collinear "
+                "(constant velocity?): Jeff, Tvp, Tvn, Tsp, Tsn not determined from it."
+            )
+            continue
+        for col, name in enumerate(HIGH_VELOCITY_NAMES):
+            if active[j, col]:
+                per[name][k] = float(theta[j, col])
+
+
+def _stribeck_stage(
+    prepared, low_idx, Tss2, threshold, low_velocity_factor, min_samples, velocity_scale, smoothing, per, details, notes
+):
+    """Stage 3b, eq. 8 on the slow experiments with the high-velocity terms fixed at their means:
+    Tssp1, Tssn1 (N·m) into `per` (and the fixed Tss2, rad/s), sample counts into `details`."""
+    n_exp = len(per["Tss2"])
+    details["low_velocity_experiments"] = [int(k) for k in low_idx]
+    fixed = {name: _mean(per[name]) for name in HIGH_VELOCITY_NAMES}
+    details["stribeck_fixed"] = dict(fixed)
+    floor = 2.0 * velocity_scale
+    details["stribeck_samples"] = {"positive": [0] * n_exp, "negative": [0] * n_exp}
+    if low_idx.size == 0:
+        notes.append(
+            "no low-velocity experiments (median |ω| below "
+            f"{low_velocity_factor * Tss2:.3g} rad/s): Tssp1, Tssn1 undetermined — record slow runs "
+            f"(constrained or free) that spend most time below {low_velocity_factor * Tss2:.3g} rad/s "
+            "in both directions."
+        )
+        return
+    if not math.isfinite(fixed["Jeff"]):
+        notes.append(
+            "Tssp1, Tssn1 undetermined: the Stribeck regression needs Jeff and the viscous/Coulomb "
+            "terms from high-velocity free-motion experiments first."
+        )
+        return
+    pos_ok = math.isfinite(fixed["Tvp"]) and math.isfinite(fixed["Tsp"])
+    neg_ok = math.isfinite(fixed["Tvn"]) and math.isfinite(fixed["Tsn"])
+    if not pos_ok:
+        notes.append("Tssp1 undetermined: Tvp/Tsp (positive direction) were not identified.")
+    if not neg_ok:
+        notes.append("Tssn1 undetermined: Tvn/Tsn (negative direction) were not identified.")
+    fixed_arr = jnp.asarray([fixed[n] if math.isfinite(fixed[n]) else 0.0 for n in HIGH_VELOCITY_NAMES])
+    assert prepared is not None  # None only without experiments, when every index list is empty
+    sub = _take(prepared, low_idx)
+    theta, active, lam, npos, nneg = (
+        np.asarray(x)
+        for x in _friction_stribeck(
+            sub, fixed_arr, jnp.asarray([pos_ok, neg_ok]), Tss2, floor, threshold, min_samples, smoothing
+        )
+    )
+    for j, k in enumerate(low_idx):
+        details["stribeck_samples"]["positive"][k] = int(npos[j])
+        details["stribeck_samples"]["negative"][k] = int(nneg[j])
+        missing = []
+        if pos_ok and not active[j, 0]:
+            missing.append(f"{floor:.3g} < ω < {threshold:.3g} rad/s ({int(npos[j])} samples): Tssp1")
+        if neg_ok and not active[j, 1]:
+            missing.append(f"−{threshold:.3g} < ω < −{floor:.3g} rad/s ({int(nneg[j])} samples): Tssn1")
+        _sample_shortage_note(k, "low velocity", min_samples, missing, notes)
+        if not np.any(active[j]):
+            continue
+        if not (lam[j] > _COND_FLOOR and np.all(np.isfinite(theta[j]))):
+            notes.append(f"experiment {k} (low velocity): Stribeck regressors degenerate; skipped.")
+            continue
+        for col, name in enumerate(STRIBECK_NAMES):
+            if active[j, col]:
+                per[name][k] = float(theta[j, col])
+        per["Tss2"][k] = float(Tss2)
+
+
+def _summarise(per, alpha, Tss2, notes):
+    """Stage 4: the mean estimates (SI), the paper's consistency and the informing experiments of
+    each parameter, with a note for each undetermined or single-experiment parameter."""
+    estimates = {k: _mean(per[k]) for k in PARAMETER_NAMES}
+    estimates["alpha"] = float(alpha)
+    estimates["Tss2"] = float(Tss2)
+    consistency = {k: _consistency(per[k]) for k in PARAMETER_NAMES}
+    consistency["alpha"] = 0.0
+    consistency["Tss2"] = 0.0
+    indices = {k: [int(i) for i in np.flatnonzero(np.isfinite(per[k]))] for k in PARAMETER_NAMES}
+    for k in PARAMETER_NAMES:
+        if not math.isfinite(estimates[k]):
+            notes.append(
+                f"{k} undetermined; `parameters()` falls back to {PAPER_HD2_SI[k]:g} "
+                "(paper Table I, harmonic drive 2, SI)."
+            )
+        elif len(indices[k]) == 1 and k not in ("alpha", "Tss2"):
+            notes.append(f"{k} was determined by a single experiment: its consistency is undefined (NaN).")
+    return estimates, consistency, indices
+
+
+# --------------------------------------------------------------------------------------------
 # Entry point
 
 
@@ -414,16 +631,12 @@ def identify_paper(
 
     Never raises on missing experiment types: undetermined parameters are NaN with a note.
     """
-    notes: list[str] = []
     n_exp = len(experiments)
     nan = float("nan")
     per = {k: [nan] * n_exp for k in PARAMETER_NAMES}
     smoothing = Smoothing(velocity_scale=velocity_scale)
-    lo, hi = float(alpha_bounds[0]), float(alpha_bounds[1])
-    if not lo < alpha < hi and nonlinear:
-        raise ValueError(f"`identify_paper`: alpha={alpha} must lie inside alpha_bounds={alpha_bounds}.")
-    if Tss2 <= 0:
-        raise ValueError(f"`identify_paper`: Tss2 must be positive (rad/s), got {Tss2}.")
+    lo, hi = _check_options(alpha, Tss2, alpha_bounds, nonlinear)
+    notes: list[str] = []
     if not jax.config.jax_enable_x64:  # pyright: ignore[reportAttributeAccessIssue]  jax.config options are dynamic attributes
         notes.append(
             "float64 is off (jax_enable_x64): the regressions ran in float32 and may be inaccurate; "
@@ -439,183 +652,21 @@ def identify_paper(
         "torsion_offset": [nan] * n_exp,
     }
 
-    if n_exp == 0:
-        notes.append("no experiments given: every fitted parameter is undetermined.")
-        free = np.zeros(0, dtype=bool)
-        medians = np.zeros(0)
-        prepared = None
-    else:
-        prepared, free, medians = _prepare(experiments, drive, cutoff_hz, filter_order, notes)
+    prepared, free, medians = _prepare_or_nothing(experiments, drive, cutoff_hz, filter_order, notes)
     details["free"] = [bool(f) for f in free]
     details["median_abs_velocity"] = [float(m) for m in medians]
     low_speed = medians < low_velocity_factor * Tss2
-    constrained_idx = np.flatnonzero(~free)
-    free_idx = np.flatnonzero(free & ~low_speed)
-    low_idx = np.flatnonzero(low_speed)
-
-    # ---- compliance ------------------------------------------------------------------------
-    if constrained_idx.size == 0:
-        notes.append(
-            "no constrained (output-locked) experiments: K1, Tst and the optimal alpha undetermined — "
-            "record locked-output runs with a torque excursion of a good fraction of the rated torque."
-        )
-    else:
-        assert prepared is not None  # None only without experiments, when every index list is empty
-        sub = _take(prepared, constrained_idx)
-        K1, Tst, c, lam = (np.asarray(x) for x in _compliance_linear(sub, alpha))
-        for j, k in enumerate(constrained_idx):
-            if not (lam[j] > _COND_FLOOR and np.isfinite(K1[j]) and np.isfinite(Tst[j])):
-                notes.append(
-                    f"experiment {k} (constrained): torsion, torsion rate and offset are collinear "
-                    "(no torque/velocity excursion?): K1, Tst not determined from it."
-                )
-                continue
-            per["K1"][k], per["Tst"][k] = float(K1[j]), float(Tst[j])
-            per["alpha"][k] = float(alpha)
-            details["torsion_offset"][k] = float(c[j])
-        if nonlinear:
-            a, K1n, Tstn, cn, conv = (np.asarray(x) for x in _compliance_nonlinear(sub, lo, hi))
-            alpha_nl.update(
-                alpha=[float(x) for x in a], K1=[float(x) for x in K1n], Tst=[float(x) for x in Tstn],
-                offset=[float(x) for x in cn], converged=[bool(x) for x in conv],
-                indices=[int(k) for k in constrained_idx],
-            )
-            good = conv & np.isfinite(a)
-            alpha_nl["mean"] = _mean(a[good])
-            alpha_nl["consistency"] = _consistency(a[good])
-            if not np.all(conv):
-                notes.append(
-                    "nonlinear compliance regression did not converge for experiment(s) "
-                    f"{_fmt(constrained_idx[~conv])}; excluded from the optimal-alpha mean."
-                )
-            at_bound = good & ((a < lo + 1e-3) | (a > hi - 1e-3))
-            if np.any(at_bound):
-                notes.append(
-                    f"optimal alpha reached its bound {alpha_bounds} for experiment(s) "
-                    f"{_fmt(constrained_idx[at_bound])}: the damping term is poorly excited there."
-                )
-
-    # ---- friction, high velocity ------------------------------------------------------------
     threshold = high_velocity_factor * Tss2
-    details["high_velocity_samples"] = {"positive": [0] * n_exp, "negative": [0] * n_exp}
-    if free_idx.size == 0:
-        slow_free = np.flatnonzero(free & low_speed)
-        what = (
-            f"free-motion experiments ({_fmt(slow_free)}) are all low-velocity (median |ω| < "
-            f"{low_velocity_factor * Tss2:.3g} rad/s)"
-            if slow_free.size
-            else "no free-motion experiments"
-        )
-        notes.append(
-            f"{what}: Jeff, Tvp, Tvn, Tsp, Tsn undetermined — record free-motion "
-            f"runs at |ω| > {threshold:.3g} rad/s in both directions."
-        )
-    else:
-        assert prepared is not None  # None only without experiments, when every index list is empty
-        sub = _take(prepared, free_idx)
-        theta, active, lam, npos, nneg = (
-            np.asarray(x) for x in _friction_high(sub, Tss2, threshold, min_samples, smoothing)
-        )
-        for j, k in enumerate(free_idx):
-            details["high_velocity_samples"]["positive"][k] = int(npos[j])
-            details["high_velocity_samples"]["negative"][k] = int(nneg[j])
-            missing = []
-            if not active[j, 1]:
-                missing.append(f"ω > {threshold:.3g} rad/s ({int(npos[j])} samples): Tvp, Tsp")
-            if not active[j, 2]:
-                missing.append(f"ω < −{threshold:.3g} rad/s ({int(nneg[j])} samples): Tvn, Tsn")
-            if missing:
-                notes.append(
-                    f"experiment {k} (free): fewer than {min_samples} samples at "
-                    + "; ".join(missing)
-                    + " not determined from it."
-                )
-            if not active[j, 0]:
-                continue
-            if not (lam[j] > _COND_FLOOR and np.all(np.isfinite(theta[j]))):
-                notes.append(
-                    f"experiment {k} (free): acceleration and friction regressors are collinear "
-                    "(constant velocity?): Jeff, Tvp, Tvn, Tsp, Tsn not determined from it."
-                )
-                continue
-            for col, name in enumerate(HIGH_VELOCITY_NAMES):
-                if active[j, col]:
-                    per[name][k] = float(theta[j, col])
 
-    # ---- friction, low velocity (Stribeck) ------------------------------------------------
-    details["low_velocity_experiments"] = [int(k) for k in low_idx]
-    fixed = {name: _mean(per[name]) for name in HIGH_VELOCITY_NAMES}
-    details["stribeck_fixed"] = dict(fixed)
-    floor = 2.0 * velocity_scale
-    details["stribeck_samples"] = {"positive": [0] * n_exp, "negative": [0] * n_exp}
-    if low_idx.size == 0:
-        notes.append(
-            "no low-velocity experiments (median |ω| below "
-            f"{low_velocity_factor * Tss2:.3g} rad/s): Tssp1, Tssn1 undetermined — record slow runs "
-            f"(constrained or free) that spend most time below {low_velocity_factor * Tss2:.3g} rad/s "
-            "in both directions."
-        )
-    elif not math.isfinite(fixed["Jeff"]):
-        notes.append(
-            "Tssp1, Tssn1 undetermined: the Stribeck regression needs Jeff and the viscous/Coulomb "
-            "terms from high-velocity free-motion experiments first."
-        )
-    else:
-        pos_ok = math.isfinite(fixed["Tvp"]) and math.isfinite(fixed["Tsp"])
-        neg_ok = math.isfinite(fixed["Tvn"]) and math.isfinite(fixed["Tsn"])
-        if not pos_ok:
-            notes.append("Tssp1 undetermined: Tvp/Tsp (positive direction) were not identified.")
-        if not neg_ok:
-            notes.append("Tssn1 undetermined: Tvn/Tsn (negative direction) were not identified.")
-        fixed_arr = jnp.asarray([fixed[n] if math.isfinite(fixed[n]) else 0.0 for n in HIGH_VELOCITY_NAMES])
-        assert prepared is not None  # None only without experiments, when every index list is empty
-        sub = _take(prepared, low_idx)
-        theta, active, lam, npos, nneg = (
-            np.asarray(x)
-            for x in _friction_stribeck(
-                sub, fixed_arr, jnp.asarray([pos_ok, neg_ok]), Tss2, floor, threshold, min_samples, smoothing
-            )
-        )
-        for j, k in enumerate(low_idx):
-            details["stribeck_samples"]["positive"][k] = int(npos[j])
-            details["stribeck_samples"]["negative"][k] = int(nneg[j])
-            missing = []
-            if pos_ok and not active[j, 0]:
-                missing.append(f"{floor:.3g} < ω < {threshold:.3g} rad/s ({int(npos[j])} samples): Tssp1")
-            if neg_ok and not active[j, 1]:
-                missing.append(f"−{threshold:.3g} < ω < −{floor:.3g} rad/s ({int(nneg[j])} samples): Tssn1")
-            if missing:
-                notes.append(
-                    f"experiment {k} (low velocity): fewer than {min_samples} samples at "
-                    + "; ".join(missing)
-                    + " not determined from it."
-                )
-            if not np.any(active[j]):
-                continue
-            if not (lam[j] > _COND_FLOOR and np.all(np.isfinite(theta[j]))):
-                notes.append(f"experiment {k} (low velocity): Stribeck regressors degenerate; skipped.")
-                continue
-            for col, name in enumerate(STRIBECK_NAMES):
-                if active[j, col]:
-                    per[name][k] = float(theta[j, col])
-            per["Tss2"][k] = float(Tss2)
-
-    # ---- summary ------------------------------------------------------------------------------
-    estimates = {k: _mean(per[k]) for k in PARAMETER_NAMES}
-    estimates["alpha"] = float(alpha)
-    estimates["Tss2"] = float(Tss2)
-    consistency = {k: _consistency(per[k]) for k in PARAMETER_NAMES}
-    consistency["alpha"] = 0.0
-    consistency["Tss2"] = 0.0
-    indices = {k: [int(i) for i in np.flatnonzero(np.isfinite(per[k]))] for k in PARAMETER_NAMES}
-    for k in PARAMETER_NAMES:
-        if not math.isfinite(estimates[k]):
-            notes.append(
-                f"{k} undetermined; `parameters()` falls back to {PAPER_HD2_SI[k]:g} "
-                "(paper Table I, harmonic drive 2, SI)."
-            )
-        elif len(indices[k]) == 1 and k not in ("alpha", "Tss2"):
-            notes.append(f"{k} was determined by a single experiment: its consistency is undefined (NaN).")
+    _compliance_stage(prepared, np.flatnonzero(~free), alpha, alpha_bounds, nonlinear, per, details, alpha_nl, notes)
+    _high_velocity_stage(
+        prepared, free, low_speed, Tss2, threshold, low_velocity_factor, min_samples, smoothing, per, details, notes
+    )
+    _stribeck_stage(
+        prepared, np.flatnonzero(low_speed), Tss2, threshold, low_velocity_factor, min_samples, velocity_scale,
+        smoothing, per, details, notes,
+    )
+    estimates, consistency, indices = _summarise(per, alpha, Tss2, notes)
     return PaperIdentification(
         estimates=estimates,
         per_experiment=per,

@@ -104,10 +104,19 @@ def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical
     time-resolved sensitivities of a typical test per mode, the correlation matrix and the paper's
     Figs. 6–7 (complete vs simplified model). Returns the file names written."""
     figs = []
+    _information_heatmap(out, names, info, ok, files, modes, figs)
+    _sensitivity_curves(out, names, files, batch, sens, typical, figs)
+    _correlation_figure(out, names, fs_all, figs)
+    if abl_traj is not None:
+        _ablation_figures(out, files, batch, sens, typical, abl_traj, figs)
+    return figs
+
+
+def _information_heatmap(out, names, info, ok, files, modes, figs: list[str]) -> None:
+    """Heat map of the information √F_kk (–, log scale), parameters × experiments, constrained
+    first."""
     order = [j for j, m in enumerate(modes) if m == "constrained"] + [j for j, m in enumerate(modes) if m == "free"]
     n_cons = sum(m == "constrained" for m in modes)
-
-    # heat map: parameters × experiments
     M = np.array([[info[k, j] if ok[j] and info[k, j] > 0 else np.nan for j in order] for k in range(len(names))])
     fig, ax = plt.subplots(figsize=(max(8, 0.22 * len(order) + 3), 4.8))
     finite = M[np.isfinite(M)]
@@ -125,7 +134,10 @@ def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical
     fig.tight_layout()
     _save(fig, out, "sensitivity_heatmap.png", figs, dpi=120)
 
-    # time-resolved sensitivity curves for a typical constrained and free experiment
+
+def _sensitivity_curves(out, names, files, batch, sens, typical, figs: list[str]) -> None:
+    """∂y/∂ln p over time (s) of torque (N·m) and motor velocity (rad/s) for a typical
+    constrained and free experiment."""
     cols = [(m, typical[m]) for m in ("constrained", "free") if m in typical]
     if cols:
         t = np.asarray(batch.time)
@@ -150,7 +162,9 @@ def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical
         fig.tight_layout()
         _save(fig, out, "sensitivity_curves.png", figs, dpi=110)
 
-    # correlation matrix
+
+def _correlation_figure(out, names, fs_all, figs: list[str]) -> None:
+    """The noise-only correlation matrix of all 11 parameters (–)."""
     C = np.array(fs_all["correlation"], dtype=float)
     fig, ax = plt.subplots(figsize=(6.8, 5.8))
     im = ax.imshow(C, cmap="RdBu_r", vmin=-1, vmax=1)
@@ -167,40 +181,41 @@ def sensitivity_figures(out, names, info, ok, files, modes, batch, sens, typical
     fig.tight_layout()
     _save(fig, out, "correlation.png", figs, dpi=120)
 
-    # paper's Fig. 6 (free) and Fig. 7 (constrained): measured vs complete vs simplified
-    if abl_traj is not None:
-        t = np.asarray(batch.time)
-        mask = np.asarray(batch.mask)
-        y_c = np.asarray(sens.outputs)
-        lanes = abl_traj["lanes"]
-        for fname, mode, keys in (("fig6_free_ablation.png", "free", ("coulomb_zero", "viscous_zero")),
-                                  ("fig7_constrained_ablation.png", "constrained", ("K1_div10", "Tst_zero"))):
-            if mode not in typical:
-                continue
-            j = typical[mode]
-            fig, axes = plt.subplots(2, len(keys), figsize=(6.2 * len(keys), 5.8), squeeze=False, sharex=True)
-            for ci, key in enumerate(keys):
-                a = [i for i, ab in enumerate(ABLATIONS) if ab[0] == key][0]
-                label = ABLATIONS[a][1]
-                li = [i for i, (aa, jj) in enumerate(lanes) if aa == a and jj == j]
-                for ri, (ch, c) in enumerate((("motor_velocity", 1), ("torque", 0))):
-                    ax = axes[ri, ci]
-                    meas = np.asarray(getattr(batch, ch))[j][mask[j]]
-                    ax.plot(t[j][mask[j]], meas, color="0.7", lw=2.4, label="measured")
-                    ax.plot(t[j][mask[j]], y_c[j, c][mask[j]], color="C0", lw=1.2, label="complete model")
-                    if li:
-                        ok_l = bool(abl_traj["success"][li[0]])
-                        ax.plot(t[j][mask[j]], abl_traj[ch][li[0]][mask[j]], color="C3", lw=1.2, ls="--",
-                                label=label + ("" if ok_l else " (solve failed)"))
-                    ax.set_ylabel(f"{ch.replace('_', ' ')} ({CHANNEL_UNITS[ch]})")
-                    ax.grid(alpha=0.3)
-                    if ri == 0:
-                        ax.set_title(f"{label}: {files[j]} ({mode})", fontsize=9)
-                        ax.legend(fontsize=8)
-                axes[-1, ci].set_xlabel("time (s)")
-            fig.tight_layout()
-            _save(fig, out, fname, figs, dpi=110)
-    return figs
+
+def _ablation_figures(out, files, batch, sens, typical, abl_traj, figs: list[str]) -> None:
+    """The paper's Fig. 6 (free) and Fig. 7 (constrained): measured vs complete vs simplified model,
+    motor velocity (rad/s) and torque (N·m) over time (s), on the typical experiment of each mode."""
+    t = np.asarray(batch.time)
+    mask = np.asarray(batch.mask)
+    y_c = np.asarray(sens.outputs)
+    lanes = abl_traj["lanes"]
+    for fname, mode, keys in (("fig6_free_ablation.png", "free", ("coulomb_zero", "viscous_zero")),
+                              ("fig7_constrained_ablation.png", "constrained", ("K1_div10", "Tst_zero"))):
+        if mode not in typical:
+            continue
+        j = typical[mode]
+        fig, axes = plt.subplots(2, len(keys), figsize=(6.2 * len(keys), 5.8), squeeze=False, sharex=True)
+        for ci, key in enumerate(keys):
+            a = [i for i, ab in enumerate(ABLATIONS) if ab[0] == key][0]
+            label = ABLATIONS[a][1]
+            li = [i for i, (aa, jj) in enumerate(lanes) if aa == a and jj == j]
+            for ri, (ch, c) in enumerate((("motor_velocity", 1), ("torque", 0))):
+                ax = axes[ri, ci]
+                meas = np.asarray(getattr(batch, ch))[j][mask[j]]
+                ax.plot(t[j][mask[j]], meas, color="0.7", lw=2.4, label="measured")
+                ax.plot(t[j][mask[j]], y_c[j, c][mask[j]], color="C0", lw=1.2, label="complete model")
+                if li:
+                    ok_l = bool(abl_traj["success"][li[0]])
+                    ax.plot(t[j][mask[j]], abl_traj[ch][li[0]][mask[j]], color="C3", lw=1.2, ls="--",
+                            label=label + ("" if ok_l else " (solve failed)"))
+                ax.set_ylabel(f"{ch.replace('_', ' ')} ({CHANNEL_UNITS[ch]})")
+                ax.grid(alpha=0.3)
+                if ri == 0:
+                    ax.set_title(f"{label}: {files[j]} ({mode})", fontsize=9)
+                    ax.legend(fontsize=8)
+            axes[-1, ci].set_xlabel("time (s)")
+        fig.tight_layout()
+        _save(fig, out, fname, figs, dpi=110)
 
 
 # ---- tune ----

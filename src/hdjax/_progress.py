@@ -90,7 +90,10 @@ class RunLog:
     only on a terminal and unless `quiet`).
 
     Use as a context manager: inside the block it is `current()`, so that compiled loops deep in
-    the library report to it."""
+    the library report to it.
+
+    The class stays long (about 125 lines) on purpose: its methods are short and share one lock,
+    one run.log file and one progress display, which splitting it would scatter."""
 
     def __init__(self, *, quiet: bool = False, path: str | pathlib.Path | None = None, console=None):
         self.quiet = quiet

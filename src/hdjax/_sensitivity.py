@@ -354,15 +354,7 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     timing["parameters"] = time.time() - t0
     log(f"      from {source['kind']}" + (f" ({source['path']})" if "path" in source else ""))
 
-    sel = _select(modes_all, int(opts["max_experiments"]))
-    if len(sel) < len(exps):
-        notes.append(
-            f"Sensitivities, Fisher information and ablations use {len(sel)} of {len(exps)} experiments, evenly spread "
-            "over constrained and free (`sensitivity.max_experiments`), to bound the run time."
-        )
-    files = [files_all[j] for j in sel]
-    modes = [modes_all[j] for j in sel]
-    batch = stack_experiments([exps[j] for j in sel])
+    sel, files, modes, batch = _selection(exps, files_all, modes_all, opts, notes)
     sigma = np.asarray(noise_levels(stack_experiments(exps)))
     simulator = workflow_simulator(opts)
 
@@ -370,47 +362,16 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     t0 = time.time()
     sens = jax.block_until_ready(sensitivities(p, drive, batch, simulator=simulator))
     timing["sensitivities"] = time.time() - t0
-    ok = np.asarray(sens.success) & np.all(np.isfinite(np.asarray(sens.S)), axis=(1, 2, 3))
-    failed = [files[j] for j in range(len(sel)) if not ok[j]]
-    if failed:
-        notes.append(
-            f"The simulation failed (step budget `sensitivity.max_steps` = {opts['max_steps']} or solver failure) for "
-            f"{len(failed)} experiment(s), left out of the Fisher information: {', '.join(failed)}."
-        )
+    ok = _simulations_ok(sens, files, opts, notes)
     Js, rs, blocks = weighted_jacobians(sens.S, sens.outputs, batch, sigma)
     names = list(PARAMETER_NAMES)
     P = len(names)
-    F_e = np.stack([J.T @ J if ok[j] else np.zeros((P, P)) for j, J in enumerate(Js)])
-    info = np.sqrt(np.clip(np.einsum("ekk->ek", F_e), 0, None)).T  # (parameter, experiment)
-    summary = {}
-    for k, name in enumerate(names):
-        rms_sig, rms_si = {}, {}
-        for c, ch in enumerate(CHANNELS):
-            v_sig, v_si = [], []
-            for j in range(len(sel)):
-                blk = blocks[j].get(ch)
-                if blk is None or not ok[j]:
-                    v_sig.append(None)
-                    v_si.append(None)
-                else:
-                    v_sig.append(float(np.sqrt(np.mean(blk[:, k] ** 2))))
-                    v_si.append(float(np.sqrt(np.mean(blk[:, k] ** 2))) * float(sigma[c]))
-            rms_sig[ch], rms_si[ch] = v_sig, v_si
-        summary[name] = {
-            "information": [float(info[k, j]) if ok[j] else None for j in range(len(sel))],
-            "rms_over_noise": rms_sig,
-            "rms": rms_si,
-        }
+    F_e, info = _fisher_per_experiment(Js, ok, P)
+    summary = _sensitivity_summary(names, info, ok, blocks, sigma)
 
     log("[3/5] Fisher information, standard errors, correlations, weakest directions")
     F = F_e.sum(0)
-    n_obs = int(sum(len(r) for j, r in enumerate(rs) if ok[j]))
-    chi2 = float(sum(float(r @ r) for j, r in enumerate(rs) if ok[j]) / max(n_obs - P, 1))
-    chi2_channel = {}
-    for c, ch in enumerate(CHANNELS):
-        rr = [_channel_residual(rs[j], blocks[j], ch) for j in range(len(sel)) if ok[j] and ch in blocks[j]]
-        if rr:
-            chi2_channel[ch] = float(np.mean(np.concatenate(rr) ** 2))
+    n_obs, chi2, chi2_channel = _chi_square(rs, blocks, ok, P)
     fs_all = fisher_summary(F, names)
     est = [k for k in ESTIMATED if k in names]
     fs_est = fisher_summary(_sub_fisher(F, names, est), est)
@@ -431,16 +392,6 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     timing["figures"] = time.time() - t0
     timing["total"] = time.time() - t_start
 
-    std_errors = {}
-    for k in names:
-        rel = fs_est["std_error"].get(k, fs_all["std_error"][k])
-        std_errors[k] = {
-            "relative": rel,
-            "absolute": rel * abs(float(getattr(p, k))),
-            "relative_all_free": fs_all["std_error"][k],
-            "estimated": k in est,
-            "unit": PARAMETER_UNITS[k],
-        }
     result = {
         "schema": SCHEMA,
         "dataset": dataset.name,
@@ -451,41 +402,11 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
             for j, (f, m) in enumerate(zip(files, modes))
         ],
         "noise_levels": dict(zip(CHANNELS, sigma.tolist())),
-        "sensitivity": {
-            "definition": (
-                "S_k(t) = ∂y(t)/∂ln|p_k| (forward-mode AD through the solve). Per parameter and experiment: "
-                "`information` = √(Σ_t Σ_channels (S_k/σ_channel)²) = 1 / (relative standard error of p_k if it "
-                "were the only unknown, from this experiment alone); `rms_over_noise` = RMS over time of S_k/σ "
-                "per channel (–); `rms` = RMS over time of S_k per channel (N·m, rad/s, rad). The output angle "
-                "is projected off its rigid-body components {1, t} first, as in the fit's residual."
-            ),
-            "experiments": files,
-            "modes": modes,
-            "parameters": summary,
-        },
-        "standard_errors": std_errors,
+        "sensitivity": _sensitivity_section(files, modes, summary),
+        "standard_errors": _standard_errors(names, est, fs_est, fs_all, p),
         "correlation": {"parameters": fs_all["parameters"], "matrix": fs_all["correlation"]},
-        "svd": {
-            "parameters": names,
-            "singular_values": fs_all["singular_values"],
-            "weakest_directions": [
-                dict(d, combination=_combination(d["components"])) for d in fs_all["directions"]
-            ],
-        },
-        "identifiability": {
-            "chi2_reduced": chi2,
-            "chi2_per_channel": chi2_channel,
-            "observations": n_obs,
-            "note": (
-                "Standard errors are noise-only: √diag((JᵀJ)⁻¹) with J the noise-weighted residual Jacobian in ln p, "
-                "so they are relative. `relative` holds the 9 parameters the fit estimates (alpha and Tss2 fixed, "
-                "as in the paper); `relative_all_free` frees all 11. Multiply by √chi2_reduced for the fit's "
-                "convention (model error inflating the noise)."
-            ),
-            "estimated": fs_est,
-            "all": fs_all,
-            "comparison": comparison,
-        },
+        "svd": _svd_section(names, fs_all),
+        "identifiability": _identifiability_section(chi2, chi2_channel, n_obs, fs_est, fs_all, comparison),
         "ablation": ablation,
         "advice": advice,
         "notes": notes,
@@ -496,6 +417,142 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     atomic_write_text(out / "report.md", _report(result))
     log(f"wrote {out / 'sensitivity.json'} and {out / 'report.md'} in {timing['total']:.1f} s")
     return result
+
+
+def _selection(exps, files_all, modes_all, opts, notes):
+    """At most `sensitivity.max_experiments` experiments, evenly spread over constrained and free:
+    their positions, files, modes and stacked batch."""
+    sel = _select(modes_all, int(opts["max_experiments"]))
+    if len(sel) < len(exps):
+        notes.append(
+            f"Sensitivities, Fisher information and ablations use {len(sel)} of {len(exps)} experiments, evenly spread "
+            "over constrained and free (`sensitivity.max_experiments`), to bound the run time."
+        )
+    files = [files_all[j] for j in sel]
+    modes = [modes_all[j] for j in sel]
+    return sel, files, modes, stack_experiments([exps[j] for j in sel])
+
+
+def _simulations_ok(sens, files, opts, notes) -> np.ndarray:
+    """Which experiments simulated with finite sensitivities (bools); a note names the others."""
+    ok = np.asarray(sens.success) & np.all(np.isfinite(np.asarray(sens.S)), axis=(1, 2, 3))
+    failed = [files[j] for j in range(len(files)) if not ok[j]]
+    if failed:
+        notes.append(
+            f"The simulation failed (step budget `sensitivity.max_steps` = {opts['max_steps']} or solver failure) for "
+            f"{len(failed)} experiment(s), left out of the Fisher information: {', '.join(failed)}."
+        )
+    return ok
+
+
+def _fisher_per_experiment(Js, ok, P):
+    """Per experiment the Fisher information JᵀJ in ln p (zero where the simulation failed), and
+    the information √F_kk laid out (parameter, experiment)."""
+    F_e = np.stack([J.T @ J if ok[j] else np.zeros((P, P)) for j, J in enumerate(Js)])
+    info = np.sqrt(np.clip(np.einsum("ekk->ek", F_e), 0, None)).T  # (parameter, experiment)
+    return F_e, info
+
+
+def _sensitivity_summary(names, info, ok, blocks, sigma) -> dict:
+    """Per parameter and experiment: the information √F_kk, and per channel the RMS over time of
+    S_k/σ (–) and of S_k (N·m, rad/s, rad); None where the simulation failed or the channel is absent."""
+    n_sel = len(blocks)
+    summary = {}
+    for k, name in enumerate(names):
+        rms_sig, rms_si = {}, {}
+        for c, ch in enumerate(CHANNELS):
+            v_sig, v_si = [], []
+            for j in range(n_sel):
+                blk = blocks[j].get(ch)
+                if blk is None or not ok[j]:
+                    v_sig.append(None)
+                    v_si.append(None)
+                else:
+                    v_sig.append(float(np.sqrt(np.mean(blk[:, k] ** 2))))
+                    v_si.append(float(np.sqrt(np.mean(blk[:, k] ** 2))) * float(sigma[c]))
+            rms_sig[ch], rms_si[ch] = v_sig, v_si
+        summary[name] = {
+            "information": [float(info[k, j]) if ok[j] else None for j in range(n_sel)],
+            "rms_over_noise": rms_sig,
+            "rms": rms_si,
+        }
+    return summary
+
+
+def _chi_square(rs, blocks, ok, P) -> tuple[int, float, dict[str, float]]:
+    """The number of observations, the reduced chi-square of the noise-weighted residual over the
+    simulated experiments, and the mean squared weighted residual per channel (–)."""
+    n_obs = int(sum(len(r) for j, r in enumerate(rs) if ok[j]))
+    chi2 = float(sum(float(r @ r) for j, r in enumerate(rs) if ok[j]) / max(n_obs - P, 1))
+    chi2_channel = {}
+    for ch in CHANNELS:
+        rr = [_channel_residual(rs[j], blocks[j], ch) for j in range(len(rs)) if ok[j] and ch in blocks[j]]
+        if rr:
+            chi2_channel[ch] = float(np.mean(np.concatenate(rr) ** 2))
+    return n_obs, chi2, chi2_channel
+
+
+def _standard_errors(names, est, fs_est, fs_all, p) -> dict:
+    """sensitivity.json's `standard_errors`: relative (estimated set, and all free) and absolute
+    (in each parameter's unit) noise-only standard errors."""
+    std_errors = {}
+    for k in names:
+        rel = fs_est["std_error"].get(k, fs_all["std_error"][k])
+        std_errors[k] = {
+            "relative": rel,
+            "absolute": rel * abs(float(getattr(p, k))),
+            "relative_all_free": fs_all["std_error"][k],
+            "estimated": k in est,
+            "unit": PARAMETER_UNITS[k],
+        }
+    return std_errors
+
+
+def _sensitivity_section(files, modes, summary) -> dict:
+    """sensitivity.json's `sensitivity`: the definition, the experiments and the per-parameter summary."""
+    return {
+        "definition": (
+            "S_k(t) = ∂y(t)/∂ln|p_k| (forward-mode AD through the solve). Per parameter and experiment: "
+            "`information` = √(Σ_t Σ_channels (S_k/σ_channel)²) = 1 / (relative standard error of p_k if it "
+            "were the only unknown, from this experiment alone); `rms_over_noise` = RMS over time of S_k/σ "
+            "per channel (–); `rms` = RMS over time of S_k per channel (N·m, rad/s, rad). The output angle "
+            "is projected off its rigid-body components {1, t} first, as in the fit's residual."
+        ),
+        "experiments": files,
+        "modes": modes,
+        "parameters": summary,
+    }
+
+
+def _svd_section(names, fs_all) -> dict:
+    """sensitivity.json's `svd`: singular values and the weakest directions, each written out as a
+    combination of ln p."""
+    return {
+        "parameters": names,
+        "singular_values": fs_all["singular_values"],
+        "weakest_directions": [
+            dict(d, combination=_combination(d["components"])) for d in fs_all["directions"]
+        ],
+    }
+
+
+def _identifiability_section(chi2, chi2_channel, n_obs, fs_est, fs_all, comparison) -> dict:
+    """sensitivity.json's `identifiability`: chi-square, the Fisher summaries and the comparison
+    with the consistency."""
+    return {
+        "chi2_reduced": chi2,
+        "chi2_per_channel": chi2_channel,
+        "observations": n_obs,
+        "note": (
+            "Standard errors are noise-only: √diag((JᵀJ)⁻¹) with J the noise-weighted residual Jacobian in ln p, "
+            "so they are relative. `relative` holds the 9 parameters the fit estimates (alpha and Tss2 fixed, "
+            "as in the paper); `relative_all_free` frees all 11. Multiply by √chi2_reduced for the fit's "
+            "convention (model error inflating the noise)."
+        ),
+        "estimated": fs_est,
+        "all": fs_all,
+        "comparison": comparison,
+    }
 
 
 def _compare(F_e, ok, names, est, fs_est, consistency, per_exp_est, paper, sel, exps, modes, batch, Tss2) -> list[dict]:
@@ -743,61 +800,13 @@ def _advice(F, F_e, ok, names, est, fs_est, files, modes, batch, p) -> dict:
     if worst is None:
         return result
     k = names.index(worst)
-    Fe = _sub_fisher(F, names, est)
-
-    def se_with(extra, m=1):
-        return fisher_summary(Fe + m * _sub_fisher(extra, names, est), est, n_directions=0)["std_error"][worst]
-
     cand = [j for j in range(len(files)) if ok[j]]
-    after = {j: se_with(F_e[j]) for j in cand}
-    best = min(after, key=after.__getitem__)
-    repeats = None
-    for m in (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128):
-        if se_with(F_e[best], m) <= 0.5 * se[worst]:
-            repeats = m
-            break
+    after, best, repeats = _best_repeat(F, F_e, cand, names, est, worst, se[worst])
     Tss2 = float(p.Tss2)
-    w = np.asarray(batch.motor_velocity)
-    cur = np.asarray(batch.current)
-    mask = np.asarray(batch.mask)
-    feats = [_record_features(w[j][mask[j]], cur[j][mask[j]], Tss2) for j in range(len(files))]
-    # record classes as in the paper: locked; free low-velocity (median |ω| < 5·Tss2); free high-velocity
-    classes = {}
-    for j in cand:
-        c = modes[j] if modes[j] == "constrained" else (
-            "free, slow (median |ω| < 5·Tss2)" if feats[j]["median_abs_velocity"] < 5 * Tss2 else "free, fast")
-        classes.setdefault(c, []).append(j)
-    per_class = {c: {"records": len(js), "mean_information": float(np.mean(info[js, k])),
-                     "share_of_information": float(np.sum(info[js, k] ** 2) / max(np.sum(info[cand, k] ** 2), 1e-300))}
-                 for c, js in classes.items()}
-    best_class_of = {j: c for c, js in classes.items() for j in js}
-    others = float(np.median([np.median(info[cand, names.index(q)]) for q in est if q != worst]))
+    feats, per_class, best_class_of = _information_by_class(info, k, cand, modes, batch, Tss2)
     fb = feats[best]
     vs = _velocity_stats(batch, modes, Tss2)
-    direction = {"Tssp1": "positive", "Tvp": "positive", "Tsp": "positive",
-                 "Tssn1": "negative", "Tvn": "negative", "Tsn": "negative"}.get(worst)
-    slow_pos = sum(v["slow_positive"] for v in vs.values())
-    slow_neg = sum(v["slow_negative"] for v in vs.values())
-    if worst in ("Tssp1", "Tssn1"):
-        mine, other = (slow_pos, slow_neg) if direction == "positive" else (slow_neg, slow_pos)
-        lacking = mine < other
-        what = (
-            f"Stribeck information comes from time spent at 0 < {'ω' if direction == 'positive' else '−ω'} < 3·Tss2 "
-            f"= {3 * Tss2:.2g} rad/s: the campaign has {mine} such samples against {other} in the other direction"
-            + (", so the direction lacks data: add slow runs in it (a current just above breakaway, "
-               "|Km·i| ≈ Coulomb + |Stribeck| level, so the wave generator creeps for most of the record)"
-               if lacking else
-               "; the direction does not lack samples, the parameter simply moves the outputs little (its "
-               f"median information per record is {others / max(float(np.median(info[cand, k])), 1e-300):.0f}× below "
-               "the median of the other estimated parameters), so what "
-               "helps is records that dwell at low speed with many velocity reversals under load, like the best one "
-               f"below ({fb['velocity_reversals']} reversals, {100 * (fb['share_slow_positive'] + fb['share_slow_negative']):.0f} % "
-               f"of its samples within ±3·Tss2; its information is {info[best, k] / per_class[best_class_of[best]]['mean_information']:.1f}× "
-               "the mean of its class)")
-        )
-    else:
-        top = max(per_class, key=lambda c: per_class[c]["mean_information"])
-        what = f"Add records of the class that informs it most per record ({top})"
+    what = _what_helps(worst, info, cand, names, est, vs, per_class, best_class_of, best, fb, Tss2)
     result.update(
         {
             "worst_determined": {
@@ -828,6 +837,78 @@ def _advice(F, F_e, ok, names, est, fs_est, files, modes, batch, p) -> dict:
         }
     )
     return result
+
+
+def _best_repeat(F, F_e, cand, names, est, worst, se_worst):
+    """The relative SE of `worst` after adding each candidate record once (position → SE), the
+    record that lowers it most, and how many repeats of that record halve `se_worst` (None: over 128)."""
+    Fe = _sub_fisher(F, names, est)
+
+    def se_with(extra, m=1):
+        return fisher_summary(Fe + m * _sub_fisher(extra, names, est), est, n_directions=0)["std_error"][worst]
+
+    after = {j: se_with(F_e[j]) for j in cand}
+    best = min(after, key=after.__getitem__)
+    repeats = None
+    for m in (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128):
+        if se_with(F_e[best], m) <= 0.5 * se_worst:
+            repeats = m
+            break
+    return after, best, repeats
+
+
+def _information_by_class(info, k, cand, modes, batch, Tss2):
+    """Each record's features (`_record_features`, Tss2 in rad/s), and the information on
+    parameter `k` per record class as in the paper (locked; free low-velocity, median |ω| < 5·Tss2;
+    free high-velocity), with each candidate's class."""
+    w = np.asarray(batch.motor_velocity)
+    cur = np.asarray(batch.current)
+    mask = np.asarray(batch.mask)
+    feats = [_record_features(w[j][mask[j]], cur[j][mask[j]], Tss2) for j in range(len(modes))]
+    # record classes as in the paper: locked; free low-velocity (median |ω| < 5·Tss2); free high-velocity
+    classes = {}
+    for j in cand:
+        c = modes[j] if modes[j] == "constrained" else (
+            "free, slow (median |ω| < 5·Tss2)" if feats[j]["median_abs_velocity"] < 5 * Tss2 else "free, fast")
+        classes.setdefault(c, []).append(j)
+    per_class = {c: {"records": len(js), "mean_information": float(np.mean(info[js, k])),
+                     "share_of_information": float(np.sum(info[js, k] ** 2) / max(np.sum(info[cand, k] ** 2), 1e-300))}
+                 for c, js in classes.items()}
+    best_class_of = {j: c for c, js in classes.items() for j in js}
+    return feats, per_class, best_class_of
+
+
+def _what_helps(worst, info, cand, names, est, vs, per_class, best_class_of, best, fb, Tss2) -> str:
+    """The sentence on what to record for `worst`: for a Stribeck amplitude, whether its direction
+    lacks slow samples (|ω| < 3·Tss2, rad/s) or the parameter just moves the outputs little; else
+    the record class that informs it most per record."""
+    k = names.index(worst)
+    others = float(np.median([np.median(info[cand, names.index(q)]) for q in est if q != worst]))
+    direction = {"Tssp1": "positive", "Tvp": "positive", "Tsp": "positive",
+                 "Tssn1": "negative", "Tvn": "negative", "Tsn": "negative"}.get(worst)
+    slow_pos = sum(v["slow_positive"] for v in vs.values())
+    slow_neg = sum(v["slow_negative"] for v in vs.values())
+    if worst in ("Tssp1", "Tssn1"):
+        mine, other = (slow_pos, slow_neg) if direction == "positive" else (slow_neg, slow_pos)
+        lacking = mine < other
+        what = (
+            f"Stribeck information comes from time spent at 0 < {'ω' if direction == 'positive' else '−ω'} < 3·Tss2 "
+            f"= {3 * Tss2:.2g} rad/s: the campaign has {mine} such samples against {other} in the other direction"
+            + (", so the direction lacks data: add slow runs in it (a current just above breakaway, "
+               "|Km·i| ≈ Coulomb + |Stribeck| level, so the wave generator creeps for most of the record)"
+               if lacking else
+               "; the direction does not lack samples, the parameter simply moves the outputs little (its "
+               f"median information per record is {others / max(float(np.median(info[cand, k])), 1e-300):.0f}× below "
+               "the median of the other estimated parameters), so what "
+               "helps is records that dwell at low speed with many velocity reversals under load, like the best one "
+               f"below ({fb['velocity_reversals']} reversals, {100 * (fb['share_slow_positive'] + fb['share_slow_negative']):.0f} % "
+               f"of its samples within ±3·Tss2; its information is {info[best, k] / per_class[best_class_of[best]]['mean_information']:.1f}× "
+               "the mean of its class)")
+        )
+    else:
+        top = max(per_class, key=lambda c: per_class[c]["mean_information"])
+        what = f"Add records of the class that informs it most per record ({top})"
+    return what
 
 
 # ----------------------------------------------------------------------------------------------
@@ -863,7 +944,27 @@ def _g(v):
     return f"{v:.4g}"
 
 
+def _figure_md(r: dict, name: str, alt: str) -> list[str]:
+    """Markdown lines embedding figure `name`, or none when it was not drawn."""
+    return [f"![{alt}]({name})", ""] if name in set(r["figures"]) else []
+
+
 def _report(r: dict) -> str:
+    """report.md from sensitivity.json `r`: header, the four sections, notes and timing (s)."""
+    L = _report_header(r)
+    L += _report_sensitivities(r)
+    L += _report_identifiability(r)
+    L += _report_correlations(r)
+    L += _report_ablation(r)
+    L += _report_design(r)
+    if r["notes"]:
+        L += ["## Notes", ""] + [f"- {n}" for n in r["notes"]] + [""]
+    L += ["## Timing", ""] + [f"- {k}: {v:.1f} s" for k, v in r["timing_s"].items()] + [""]
+    return "\n".join(L)
+
+
+def _report_header(r: dict) -> list[str]:
+    """Title, parameter source, experiments and noise levels (in each channel's unit)."""
     L = [f"# Sensitivity and identifiability of `{r['dataset']}`", ""]
     src = r["parameter_source"]
     L.append(
@@ -874,13 +975,14 @@ def _report(r: dict) -> str:
     n_ok = sum(e["simulation_ok"] for e in r["experiments"])
     L += ["", f"Experiments analysed: {n_exp} ({n_ok} simulated successfully). Noise levels (from the data): "
           + ", ".join(f"{k} {v:.3g} {CHANNEL_UNITS[k]}" for k, v in r["noise_levels"].items()) + "."]
-    figs = set(r["figures"])
+    return L
 
-    def fig(name, alt):
-        return [f"![{alt}]({name})", ""] if name in figs else []
 
-    L += ["", "## 1. Sensitivities", "", r["sensitivity"]["definition"], ""]
-    L += fig("sensitivity_heatmap.png", "information heat map") + fig("sensitivity_curves.png", "sensitivity curves")
+def _report_sensitivities(r: dict) -> list[str]:
+    """Section 1: the definition, figures and the most informative experiments per parameter."""
+    L = ["", "## 1. Sensitivities", "", r["sensitivity"]["definition"], ""]
+    L += _figure_md(r, "sensitivity_heatmap.png", "information heat map")
+    L += _figure_md(r, "sensitivity_curves.png", "sensitivity curves")
     L += ["Most informative experiments per parameter (information √F_kk):", "",
           "| parameter | 1st | 2nd | 3rd | information from free motion |", "|---|---|---|---|---|"]
     sens = r["sensitivity"]["parameters"]
@@ -890,12 +992,18 @@ def _report(r: dict) -> str:
         fr = sum((v or 0) ** 2 for v, m in zip(sens[k]["information"], modes) if m == "free")
         cells = [f"{_short(x['file'])} ({x['information']:.3g})" for x in rank[:3]] + ["—"] * (3 - min(3, len(rank)))
         L.append(f"| {k} | " + " | ".join(cells) + f" | {_pct(fr / tot) if tot > 0 else '—'} |")
+    return L
+
+
+def _report_identifiability(r: dict) -> list[str]:
+    """Section 2, first part: chi-square, the standard-error table against the consistency, and
+    why they differ."""
     idf = r["identifiability"]
-    L += ["", "## 2. Identifiability", "", idf["note"], "",
-          f"Reduced chi-square of the weighted residual at these parameters: {idf['chi2_reduced']:.3g} "
-          f"({idf['observations']} observations): " + (
-              "the model explains the data to the noise level." if idf["chi2_reduced"] < 1.5 else
-              "above 1, so the residual holds more than noise (model error), which the noise-only SE leave out."), ""]
+    L = ["", "## 2. Identifiability", "", idf["note"], "",
+         f"Reduced chi-square of the weighted residual at these parameters: {idf['chi2_reduced']:.3g} "
+         f"({idf['observations']} observations): " + (
+             "the model explains the data to the noise level." if idf["chi2_reduced"] < 1.5 else
+             "above 1, so the residual holds more than noise (model error), which the noise-only SE leave out."), ""]
     L += ["| parameter | value | relative SE (9 estimated) | relative SE (all 11 free) "
           "| noise-predicted per-experiment spread | consistency | agree? |",
           "|---|---|---|---|---|---|---|"]
@@ -912,6 +1020,13 @@ def _report(r: dict) -> str:
           "informing experiment with its regression group estimated (compliance K1, Tst; high-velocity Jeff, Tvp, Tvn, "
           "Tsp, Tsn; Stribeck Tssp1, Tssn1) and the rest fixed, RMS over the experiments the paper used. "
           f"'agree' = consistency within a factor {_AGREE_FACTOR:g} of it.", ""]
+    return L + _report_disagreement(idf)
+
+
+def _report_disagreement(idf: dict) -> list[str]:
+    """Section 2, second part: rank correlation of SE and consistency, and where the consistency
+    exceeds the noise prediction, why."""
+    L = []
     rows = [c for c in idf["comparison"] if c["consistency"] is not None and c["relative_std_error"] is not None
             and np.isfinite(c["relative_std_error"])]
     if len(rows) >= 3:
@@ -940,7 +1055,12 @@ def _report(r: dict) -> str:
         L.append("")
         for c in bad:
             L.append(f"- **{c['parameter']}**: {c['why']}.")
-    L += [""] + fig("correlation.png", "correlation matrix") + ["Strongest correlations (all 11 free):", ""]
+    return L
+
+
+def _report_correlations(r: dict) -> list[str]:
+    """Section 2, last part: the correlation figure, strongest correlations and weakest directions."""
+    L = [""] + _figure_md(r, "correlation.png", "correlation matrix") + ["Strongest correlations (all 11 free):", ""]
     C = np.array(r["correlation"]["matrix"], dtype=float)
     names = r["correlation"]["parameters"]
     pairs = sorted(((abs(C[a, b]), a, b) for a in range(len(names)) for b in range(a + 1, len(names)) if np.isfinite(C[a, b])), reverse=True)
@@ -949,11 +1069,17 @@ def _report(r: dict) -> str:
     L += ["", "Weakest directions (eigenvectors of F = JᵀJ with the smallest singular values of J, in ln p):", ""]
     for d in r["svd"]["weakest_directions"]:
         L.append(f"- s = {d['singular_value']:.3g} (relative SE along it {_pct(d['std_error_along'])}): {d['combination']}")
+    return L
+
+
+def _report_ablation(r: dict) -> list[str]:
+    """Section 3: the paper's section V study, RMS torque (N·m) and velocity (rad/s) per change and
+    mode, conclusions and figures."""
     ab = r["ablation"]
-    L += ["", "## 3. The paper's section V study", "", ab.get("definition", ""), "",
-          "| change | mode | experiments | RMS torque (N·m) complete → changed | increase "
-          "| RMS velocity (rad/s) complete → changed | increase | failed |",
-          "|---|---|---|---|---|---|---|---|"]
+    L = ["", "## 3. The paper's section V study", "", ab.get("definition", ""), "",
+         "| change | mode | experiments | RMS torque (N·m) complete → changed | increase "
+         "| RMS velocity (rad/s) complete → changed | increase | failed |",
+         "|---|---|---|---|---|---|---|---|"]
     for c in ab.get("changes", []):
         for mode, e in c["per_mode"].items():
             mark = " (paper)" if mode == c["paper_mode"] else ""
@@ -971,9 +1097,15 @@ def _report(r: dict) -> str:
               f"constrained-motion compliance conclusion reproduced: **{'yes' if con['constrained_motion_compliance_reproduced'] else 'no'}**."]
         if con["differences"]:
             L += ["", "Where the data go beyond or differ from the paper:", ""] + [f"- {d}." for d in con["differences"]]
-    L += [""] + fig("fig6_free_ablation.png", "Fig. 6: free motion") + fig("fig7_constrained_ablation.png", "Fig. 7: constrained motion")
+    L += [""] + _figure_md(r, "fig6_free_ablation.png", "Fig. 6: free motion")
+    L += _figure_md(r, "fig7_constrained_ablation.png", "Fig. 7: constrained motion")
+    return L
+
+
+def _report_design(r: dict) -> list[str]:
+    """Section 4: the experiment-design suggestion and the campaign ranking on the Stribeck terms."""
     adv = r["advice"]
-    L += ["## 4. Experiment design", ""]
+    L = ["## 4. Experiment design", ""]
     if "suggestion" in adv:
         L += [adv["suggestion"], ""]
     if adv.get("undetermined"):
@@ -983,7 +1115,4 @@ def _report(r: dict) -> str:
             L.append(f"Ranking of the campaign by information on {k}: " + ", ".join(
                 f"{_short(x['file'])} ({x['information']:.3g})" for x in adv["ranking"][k][:10]) + (" …" if len(adv["ranking"][k]) > 10 else ""))
             L.append("")
-    if r["notes"]:
-        L += ["## Notes", ""] + [f"- {n}" for n in r["notes"]] + [""]
-    L += ["## Timing", ""] + [f"- {k}: {v:.1f} s" for k, v in r["timing_s"].items()] + [""]
-    return "\n".join(L)
+    return L

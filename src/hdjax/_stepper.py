@@ -276,7 +276,11 @@ def implicit_trajectory(
 ):
     """Step one experiment through its sample times with TR-BDF2 stages (see the module
     docstring). Returns per-sample arrays (q, ω_m, θ_o, ω_o, torque T, torsion Δθ, θ_m), whether
-    every step's root converged, and the number of steps."""
+    every step's root converged, and the number of steps.
+
+    It stays long (about 135 lines) on purpose: the nested `stage`, `step` and `sample_interval`
+    closures form one `lax.scan` body over the experiment's constants (N, h, geometry, current,
+    effects); lifting them to module level would thread a dozen arguments through every call."""
     N = drive.gear_ratio
     m = solver.substeps
     h = dt / m

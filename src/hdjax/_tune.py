@@ -365,14 +365,97 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
 
     log("[1/6] identified plant")
     nominal, effects, per, sigma, source = _identified(dataset, config, opts, out, log)
+    ts, ilim, ctrl = _controller(exps, nominal, drive, opts, notes)
+    df = ctrl.derivative_filter
+
+    log("[2/6] references the actuator can follow")
+    refs, ref_info = _feasible_references(dataset, drive, opts, ts, nominal, ilim, notes, log)
+    R = _stack(refs)
+    scales = jnp.asarray([r["amplitude"] for r in ref_info])
+    n = refs[0].torque.shape[0]
+    K = int(opts["noise_realisations"])
+    noise_all, noise = _measurement_noise(opts, K, n, sigma)
+    R_cost = _stack(refs * K)
+    sm = Smoothing(velocity_scale=float(opts["velocity_scale"]), torsion_rate_scale=float(opts["torsion_rate_scale"]))
+    nominal_plant = Plant(nominal, drive, effects)
+    plant_sets, (z, Pall, sss, loop_labels) = _plant_sets(nominal, per, drive, ref_info, ts, df, opts)
+
+    def margins(g):  # the linearised loops' stability and Ms for gains `g`
+        return _margin_report(g, z, Pall, sss, loop_labels, ts, df)
+
+    log("[3/6] baselines: relay + Ziegler–Nichols PI; model-based PI (MIGO on the linearised plants) + feed-forward")
+    t0 = time.time()
+    zn, relay_info = _relay_zn(nominal_plant, ref_info, opts, ilim, ts, sm, notes, log)
+    model_pi, kp_m, ki_m, migo = _model_pi(drive, z, Pall, sss, ts, df, opts, log)
+    timing["baselines"] = time.time() - t0
+
+    log(f"[4/6] robust tuning: {opts['plants']} plant sets x {len(refs)} references (vmap) + Ms terms on {len(loop_labels)} linearised loops")
+    plants = Plant(plant_sets, drive, effects)
+    kw: dict[str, Any] = dict(controller=ctrl, scales=jnp.tile(scales, K), noise=noise_all, substeps=int(opts["substeps"]), smoothing=sm)
+    parts_jit, cost_fn, total = _objective(plants, R_cost, kw, K, len(refs), z, Pall, loop_labels, ts, df, opts)
+    t0 = time.time()
+    search = _start_search(_start_candidates(zn, model_pi, kp_m, ki_m, opts), total, margins, log)
+    timing["start_search"] = time.time() - t0
+    scaling = GainScaling(kp0=float(model_pi.kp), ki0=float(model_pi.ki), derivative_time=4.0 * df)
+    res, picked, t_bfgs = _bfgs(search, cost_fn, scaling, opts, notes, log)
+    timing["bfgs"] = t_bfgs
+    tuned = res.gains
+    start_best = search[picked[res.best_run]]
+    gains = {"relay_zn": zn, "model_pi": model_pi, "tuned": tuned}
+    model = {name: _model_costs(parts_jit(g), margins(g)) for name, g in gains.items()}
+
+    bench = _bench_from_truth(dataset)
+    where = "the independent bench" if bench is not None else "the identified model"
+    log(f"[5/6] validation on {where}")
+    t0 = time.time()
+    trajs, val_desc = _validation_runs(bench, nominal_plant, gains, refs, R, ctrl, sigma, n, opts)
+    timing["validation"] = time.time() - t0
+    sim = _simulate_tuned(tuned, nominal_plant, R, noise, ctrl, sm, opts)
+    val = {name: _validation_costs([tr_all[name] for tr_all, _ in trajs], ref_info, ilim) for name in CONTROLLERS}
+    improvement = _improvement(val, where, log)
+
+    log("[6/6] report and figures")
+    kind = "bench" if bench is not None else "identified model"
+    from ._plots import tune_figures  # matplotlib loads only when figures are drawn
+    figs = tune_figures(out, trajs[0][0], sim, ref_info, search, res, ilim, kind)
+    total_t = time.time() - t_start
+    result = {
+        "schema": "hdjax.tune/2",
+        "dataset": dataset.name,
+        "identification": {"source": source, "parameters": nominal.to_dict(), "effects": sorted(effects.active)},
+        "controller": _controller_section(ctrl, ts, ilim),
+        "gains": tuned.to_dict(),
+        "gain_units": GAIN_UNITS,
+        "baselines": _baselines_section(zn, relay_info, model_pi, migo),
+        "references": ref_info,
+        "references_scaled": bool(opts["scale_references"]),
+        "tuning": _tuning_section(opts, K, sigma, sm, search, start_best, res, picked),
+        "model": model,
+        "validation": {"on": kind, "description": val_desc, **val, "improvement_over": improvement},
+        "notes": notes,
+        "figures": figs,
+        "timing_s": {"total": total_t, **timing},
+    }
+    atomic_write_json(out / "tune.json", result)
+    atomic_write_text(out / "report.md", _report(result))
+    log(f"wrote {out / 'tune.json'} and {out / 'report.md'} in {total_t:.1f} s")
+    return result
+
+
+def _controller(exps, nominal: Parameters, drive, opts: dict, notes: list[str]):
+    """The sample period (s) of the records, the current limit (A; the largest |current| recorded
+    unless `tune.current_limit` sets it) and the torque controller on the identified friction."""
     ts = float(exps[0].time[1] - exps[0].time[0])
     ilim = float(opts["current_limit"] or max(float(np.max(np.abs(np.asarray(e.current)))) for e in exps))
     if opts["current_limit"] is None:
         notes.append(f"Current limit {ilim:.3g} A = largest |current| in the records (set `tune.current_limit` for your amplifier).")
     ctrl = TorqueController(friction=nominal, drive=drive, sample_period=ts, current_limit=ilim)
-    df = ctrl.derivative_filter
+    return ts, ilim, ctrl
 
-    log("[2/6] references the actuator can follow")
+
+def _feasible_references(dataset: Dataset, drive, opts: dict, ts: float, nominal: Parameters, ilim: float, notes, log):
+    """`_references`, with one log line per reference (amplitudes in N·m) and a note when some ask
+    for more current than `ilim` (A) and `tune.scale_references` is off."""
     refs, ref_info = _references(dataset, drive, opts, ts, nominal, ilim)
     for r in ref_info:
         fr = f", {r['frequency_hz']:.3g} Hz" if "frequency_hz" in r else ""
@@ -381,24 +464,30 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     if not opts["scale_references"] and any(r["feasible_scale"] < 1.0 for r in ref_info):
         notes.append("`tune.scale_references` is off and some references ask for more current than the limit allows (by the "
                      "identified model); the validation reports the saturated samples' share of the cost separately.")  # fmt: skip
-    R = _stack(refs)
-    scales = jnp.asarray([r["amplitude"] for r in ref_info])
-    n = refs[0].torque.shape[0]
+    return refs, ref_info
+
+
+def _measurement_noise(opts: dict, K: int, n: int, sigma):
+    """K measurement-noise realisations per reference, torque (N·m) and motor velocity (rad/s),
+    common to every plant set and every gain tried; and the first realisation alone."""
     rng = np.random.default_rng(int(opts["seed"]))
-    K = int(opts["noise_realisations"])
-    # K measurement-noise realisations per reference (common to every plant set and every gain tried)
     noise_all = (jnp.asarray(rng.normal(size=(4 * K, n)) * sigma[0]), jnp.asarray(rng.normal(size=(4 * K, n)) * sigma[1]))
     noise = (noise_all[0][:4], noise_all[1][:4])
-    R_cost = _stack(refs * K)
-    sm = Smoothing(velocity_scale=float(opts["velocity_scale"]), torsion_rate_scale=float(opts["torsion_rate_scale"]))
-    nominal_plant = Plant(nominal, drive, effects)
+    return noise_all, noise
+
+
+def _plant_sets(nominal: Parameters, per: dict, drive, ref_info, ts: float, df: float, opts: dict):
+    """`tune.plants` parameter sets drawn around the identified ones (batched), and the linearised
+    sampled loops of each set (`_linear_loops`)."""
     plant_sets = draw_parameter_sets(nominal, per, int(opts["plants"]), seed=int(opts["seed"]),
                                      friction_uncertainty=float(opts["friction_uncertainty"]))
     params_list = [jax.tree.map(lambda x: x[j], plant_sets) for j in range(int(opts["plants"]))]
-    z, Pall, sss, loop_labels = _linear_loops(params_list, drive, ref_info, ts, df)
+    return plant_sets, _linear_loops(params_list, drive, ref_info, ts, df)
 
-    log("[3/6] baselines: relay + Ziegler–Nichols PI; model-based PI (MIGO on the linearised plants) + feed-forward")
-    t0 = time.time()
+
+def _relay_zn(nominal_plant: Plant, ref_info, opts: dict, ilim: float, ts: float, sm: Smoothing, notes, log):
+    """Baseline 1: a relay test on the nominal locked plant (level N·m, relay amplitude A) and the
+    Ziegler–Nichols PI from its limit cycle, with a note when that cycle is the sampled loop's own."""
     level = 0.5 * ref_info[0]["amplitude"]
     d = float(opts["relay_amplitude"]) * ilim
     relay = jax.jit(lambda pl: relay_test(pl, level=level, amplitude=d, sample_period=ts, duration=1.0, smoothing=sm))(nominal_plant)
@@ -411,19 +500,27 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
                      "apply to a relay test.")  # fmt: skip
     log(f"      relay: Ku = {relay_info['ultimate_gain']:.4g} A/(N·m), Tu = {relay_info['ultimate_period_s'] * 1e3:.3g} ms -> "
         f"kp = {float(zn.kp):.4g}, ki = {float(zn.ki):.4g}")  # fmt: skip
+    return zn, relay_info
+
+
+def _model_pi(drive, z, Pall, sss, ts: float, df: float, opts: dict, log):
+    """Baseline 2: the MIGO PI on the first two linearised loops (static gain N·Km, N·m/A), with
+    the model's reference, inertia and friction feed-forward (kr = kf = kj = 1), and its design."""
     G0 = float(drive.gear_ratio * drive.torque_constant)
     kp_m, ki_m, migo = ls.model_pi([(z, Pall[0]), (z, Pall[1])], sss[:2], static_gain=G0, ts=ts, derivative_filter=df,
                                    ms_max=float(opts["model_pi_ms"]))  # fmt: skip
     model_pi = TorqueGains(kp=kp_m, ki=ki_m, kr=1.0, kf=1.0, kj=1.0)
     log(f"      model-based PI: kp = {kp_m:.4g}, ki = {ki_m:.4g} ({migo['rule']}; Ms {migo['Ms']:.3g}), kr = kf = kj = 1")
-    timing["baselines"] = time.time() - t0
+    return model_pi, kp_m, ki_m, migo
 
-    log(f"[4/6] robust tuning: {opts['plants']} plant sets x {len(refs)} references (vmap) + Ms terms on {len(loop_labels)} linearised loops")
-    plants = Plant(plant_sets, drive, effects)
-    kw: dict[str, Any] = dict(controller=ctrl, scales=jnp.tile(scales, K), noise=noise_all, substeps=int(opts["substeps"]), smoothing=sm)
+
+def _objective(plants: Plant, R_cost, kw: dict, K: int, n_refs: int, z, Pall, loop_labels, ts: float, df: float, opts: dict):
+    """The robust tuning cost over plant sets × K noise realisations × references, plus the Ms
+    penalty on the linearised loops: `parts_jit(g)` (per plant and reference tracking and tuning
+    costs, margin term, Ms), `cost_fn(g)` (traced, for BFGS) and `total(g)` (a float)."""
 
     def per_reference(x):  # (plant, K·reference) -> (plant, reference): mean over the noise realisations
-        return x.reshape(x.shape[0], K, len(refs)).mean(axis=1)
+        return x.reshape(x.shape[0], K, n_refs).mean(axis=1)
     ew = float(opts["effort_weight"])
     Pj = jnp.asarray(Pall)
     zj = jnp.asarray(z)
@@ -452,8 +549,13 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
         _, tc, mt, ms = parts_jit(g)
         return float(jnp.mean(tc) + mt)
 
-    scaling = GainScaling(kp0=float(model_pi.kp), ki0=float(model_pi.ki), derivative_time=4.0 * df)
-    t0 = time.time()
+    return parts_jit, cost_fn, total
+
+
+def _start_candidates(zn: TorqueGains, model_pi: TorqueGains, kp_m: float, ki_m: float, opts: dict) -> list[tuple[str, TorqueGains]]:
+    """The start search's candidates: both baselines, the model-based PI scaled on the
+    `tune.start_factors` grid (its gains `kp_m`, `ki_m`), gentler free-motion PIs and the friction
+    feed-forward variants."""
     cands = [("relay_zn", zn), ("model_pi", model_pi)]
     for fp in opts["start_factors"]:
         for fi in opts["start_factors"]:
@@ -468,14 +570,24 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
                       TorqueGains(kp=kp_m, ki=ki_m, kr=1.0, kf=0.0, kj=1.0, kpf=ff, kif=ff, kfr=1.0)))
     cands.append(("model_pi, half measured / half reference-velocity friction ff",
                   TorqueGains(kp=kp_m, ki=ki_m, kr=1.0, kf=0.5, kj=1.0, kfr=0.5)))
+    return cands
+
+
+def _start_search(cands, total, margins, log) -> list[dict]:
+    """Each candidate's cost and whether its linearised loops are stable, with a progress bar."""
     search = []
     with task(log, "start search (baselines and scaled model-based PIs)", len(cands), unit="candidates") as bar:
         for name, g in cands:
             c = total(g)
-            stable = _margin_report(g, z, Pall, sss, loop_labels, ts, df)["all_stable"]
+            stable = margins(g)["all_stable"]
             search.append({"name": name, "gains": g.to_dict(), "cost": c, "linear_stable": bool(stable)})
             bar.advance(1, info=f"{name}: {c:.5g}")
-    timing["start_search"] = time.time() - t0
+    return search
+
+
+def _bfgs(search: list[dict], cost_fn, scaling: GainScaling, opts: dict, notes, log):
+    """BFGS from the `tune.starts` cheapest finite candidates: the result, the positions in
+    `search` of the starts, and the time it took (s)."""
     ok = [j for j, c in enumerate(search) if np.isfinite(c["cost"])]
     order = sorted(ok, key=lambda j: search[j]["cost"])
     picked = order[: int(opts["starts"])]
@@ -487,154 +599,157 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
         res = tune_gains(starts, cost_fn, scaling=scaling, max_steps=int(opts["max_steps"]), log=log,
                          cost_scale=float(search[picked[0]]["cost"]), max_gradient=float(opts["max_first_step"]),
                          progress=lambda k, f: bar.advance(1, info=f"cost {f:.5g}"))  # fmt: skip
-    timing["bfgs"] = time.time() - t0
-    tuned = res.gains
+    t_bfgs = time.time() - t0
     start_best = search[picked[res.best_run]]
     log(f"      BFGS: cost {start_best['cost']:.5g} -> {res.history[-1]:.5g} (start: {start_best['name']}; runs: "
         + ", ".join(f"{search[j]['name']} -> {r['final_cost']:.5g}" for j, r in zip(picked, res.runs)) + ")")  # fmt: skip
     if not any(r["converged"] for r in res.runs):
         notes.append(f"BFGS stopped at its step budget ({opts['max_steps']} steps per start, `tune.max_steps`) before its tolerance.")
-    gains = {"relay_zn": zn, "model_pi": model_pi, "tuned": tuned}
-    model = {}
-    for name, g in gains.items():
-        track, tune_c, mt, ms = (np.asarray(x) for x in parts_jit(g))
-        per_plant = track.mean(axis=1)
-        model[name] = {
-            "cost": float(tune_c.mean() + mt),
-            "tuning_cost": float(tune_c.mean()),
-            "margin_term": float(mt),
-            "tracking_cost_mean": float(track.mean()),
-            "tracking_cost_worst_plant": float(per_plant.max()),
-            "tracking_cost_per_plant": per_plant.tolist(),
-            "tracking_cost_per_reference": dict(zip(REFERENCE_NAMES, track.mean(axis=0).tolist())),
-            "margins": _margin_report(g, z, Pall, sss, loop_labels, ts, df),
-        }
+    return res, picked, t_bfgs
 
-    bench = _bench_from_truth(dataset)
-    where = "the independent bench" if bench is not None else "the identified model"
-    log(f"[5/6] validation on {where}")
-    t0 = time.time()
+
+def _model_costs(parts, margins: dict) -> dict:
+    """tune.json's `model` entry of one controller from its `parts_jit` output: costs on the
+    identified plant sets (mean, worst plant, per plant, per reference) and its margins."""
+    track, tune_c, mt, ms = (np.asarray(x) for x in parts)
+    per_plant = track.mean(axis=1)
+    return {
+        "cost": float(tune_c.mean() + mt),
+        "tuning_cost": float(tune_c.mean()),
+        "margin_term": float(mt),
+        "tracking_cost_mean": float(track.mean()),
+        "tracking_cost_worst_plant": float(per_plant.max()),
+        "tracking_cost_per_plant": per_plant.tolist(),
+        "tracking_cost_per_reference": dict(zip(REFERENCE_NAMES, track.mean(axis=0).tolist())),
+        "margins": margins,
+    }
+
+
+def _validation_runs(bench, nominal_plant: Plant, gains: dict, refs, R, ctrl: TorqueController, sigma, n: int, opts: dict):
+    """`tune.validation_runs` runs of every controller, on the bench when the dataset came from one,
+    else on the identified model: [(traj, description)], and the description of the whole."""
     runs = int(opts["validation_runs"])
     seeds = [int(opts["seed"]) + 1000 + k for k in range(runs)]
     if bench is not None:
         trajs = [_validate_bench(bench, gains, refs, ctrl, seed=sd) for sd in seeds]
     else:
         trajs = _validate_model(nominal_plant, gains, R, ctrl, sigma, n, opts, seeds=seeds)
-    traj, val_desc = trajs[0]
+    val_desc = trajs[0][1]
     val_desc += (f"; every figure is the mean over {runs} runs with independent noise (seeds {seeds[0]}-{seeds[-1]}), "
                  "the figures show the first") if runs > 1 else ""
-    timing["validation"] = time.time() - t0
-    sim = jax.jit(
+    return trajs, val_desc
+
+
+def _simulate_tuned(tuned: TorqueGains, nominal_plant: Plant, R, noise, ctrl: TorqueController, sm: Smoothing, opts: dict):
+    """The tuned loop on the nominal identified plant, every reference with the first noise
+    realisation (for the figures)."""
+    return jax.jit(
         lambda g: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b),
                                                        substeps=int(opts["substeps"]), smoothing=sm))(
             R, noise[0], noise[1]
         )
     )(tuned)
-    val = {}
-    for name in CONTROLLERS:
-        rows_runs = []
-        for tr_all, _ in trajs:
-            tr = tr_all[name]
-            per_ref: dict[str, dict[str, Any]] = {}
-            for j, info in enumerate(ref_info):
-                err = np.asarray(tr["reference"][j]) - np.asarray(tr["torque"][j])
-                cur = np.asarray(tr["current"][j])
-                tot, sat, unsat, fsat = _split_cost(err, np.asarray(tr["command_limited"][j]), ilim, info["amplitude"])
-                row: dict[str, Any] = {
-                    "tracking_cost": tot,
-                    "tracking_cost_saturated": sat,
-                    "tracking_cost_unsaturated": unsat,
-                    "saturated_fraction": fsat,
-                    "tracking_rms_Nm": float(np.sqrt(np.mean(err**2))),
-                    "measured_tracking_rms_Nm": float(np.sqrt(np.mean((np.asarray(tr["reference"][j]) - np.asarray(tr["measured_torque"][j])) ** 2))),
-                    "current_rms_A": float(np.sqrt(np.mean(cur**2))),
-                    "current_peak_A": float(np.max(np.abs(cur))),
-                }
-                if "step" in info:
-                    row.update(step_metrics(tr["time"][j], tr["torque"][j], amplitude=info["amplitude"], start=info["step"][0], end=info["step"][1]))
-                per_ref[info["name"]] = row
-            rows_runs.append(per_ref)
-        # mean over the runs of every figure (step metrics included)
-        per_ref = {ref: {k: _mean_or_none([rr[ref][k] for rr in rows_runs]) for k in rows_runs[0][ref]} for ref in rows_runs[0]}
-        for ref in per_ref:
-            per_ref[ref]["tracking_cost_per_run"] = [rr[ref]["tracking_cost"] for rr in rows_runs]
-        run_costs = [float(np.mean([r["tracking_cost"] for r in rr.values()])) for rr in rows_runs]
-        val[name] = {
-            "tracking_cost": float(np.mean(run_costs)),
-            "tracking_cost_per_run": run_costs,
-            "tracking_cost_saturated": float(np.mean([r["tracking_cost_saturated"] for r in per_ref.values()])),
-            "references": per_ref,
-        }
+
+
+def _validation_row(tr: dict, j: int, info: dict, ilim: float) -> dict[str, Any]:
+    """One controller on reference `j` of one run: tracking costs (saturated and unsaturated
+    parts), tracking RMS (N·m), current RMS and peak (A), and step metrics for a step."""
+    err = np.asarray(tr["reference"][j]) - np.asarray(tr["torque"][j])
+    cur = np.asarray(tr["current"][j])
+    tot, sat, unsat, fsat = _split_cost(err, np.asarray(tr["command_limited"][j]), ilim, info["amplitude"])
+    row: dict[str, Any] = {
+        "tracking_cost": tot,
+        "tracking_cost_saturated": sat,
+        "tracking_cost_unsaturated": unsat,
+        "saturated_fraction": fsat,
+        "tracking_rms_Nm": float(np.sqrt(np.mean(err**2))),
+        "measured_tracking_rms_Nm": float(np.sqrt(np.mean((np.asarray(tr["reference"][j]) - np.asarray(tr["measured_torque"][j])) ** 2))),
+        "current_rms_A": float(np.sqrt(np.mean(cur**2))),
+        "current_peak_A": float(np.max(np.abs(cur))),
+    }
+    if "step" in info:
+        row.update(step_metrics(tr["time"][j], tr["torque"][j], amplitude=info["amplitude"], start=info["step"][0], end=info["step"][1]))
+    return row
+
+
+def _validation_costs(runs: list[dict], ref_info, ilim: float) -> dict:
+    """tune.json's `validation` entry of one controller from its runs: every figure per reference
+    averaged over the runs, and the tracking cost per run and overall."""
+    rows_runs = [{info["name"]: _validation_row(tr, j, info, ilim) for j, info in enumerate(ref_info)} for tr in runs]
+    # mean over the runs of every figure (step metrics included)
+    per_ref: dict[str, dict[str, Any]] = {
+        ref: {k: _mean_or_none([rr[ref][k] for rr in rows_runs]) for k in rows_runs[0][ref]} for ref in rows_runs[0]
+    }
+    for ref in per_ref:
+        per_ref[ref]["tracking_cost_per_run"] = [rr[ref]["tracking_cost"] for rr in rows_runs]
+    run_costs = [float(np.mean([r["tracking_cost"] for r in rr.values()])) for rr in rows_runs]
+    return {
+        "tracking_cost": float(np.mean(run_costs)),
+        "tracking_cost_per_run": run_costs,
+        "tracking_cost_saturated": float(np.mean([r["tracking_cost_saturated"] for r in per_ref.values()])),
+        "references": per_ref,
+    }
+
+
+def _improvement(val: dict, where: str, log) -> dict[str, float]:
+    """How much lower the tuned loop's validation tracking cost is than each baseline's (fraction),
+    logged."""
     improvement = {b: 1.0 - val["tuned"]["tracking_cost"] / val[b]["tracking_cost"] for b in ("relay_zn", "model_pi")}
     log(f"      tracking cost on {where}: relay/ZN {val['relay_zn']['tracking_cost']:.4g}, model-based PI "
         f"{val['model_pi']['tracking_cost']:.4g}, tuned {val['tuned']['tracking_cost']:.4g} "
         f"({100 * improvement['relay_zn']:.1f} % / {100 * improvement['model_pi']:.1f} % lower)")  # fmt: skip
+    return improvement
 
-    log("[6/6] report and figures")
-    kind = "bench" if bench is not None else "identified model"
-    from ._plots import tune_figures  # matplotlib loads only when figures are drawn
-    figs = tune_figures(out, traj, sim, ref_info, search, res, ilim, kind)
-    total_t = time.time() - t_start
-    result = {
-        "schema": "hdjax.tune/2",
-        "dataset": dataset.name,
-        "identification": {"source": source, "parameters": nominal.to_dict(), "effects": sorted(effects.active)},
-        "controller": {
-            "law": ("i = sat(kr*r/(N*Km) + kj*N*Jeff_hat*r/(J_L*Km) + kp*e + I - kd*dy_f + kf*Tf_hat(w)/Km"
-                    " + kfr*Tf_hat(w_r)/Km) (J_L = load inertia, infinite when locked; w_r = N*(torsion rate of"
-                    " the identified compliance following r + integral of r/J_L), the motor velocity the reference"
-                    " asks for), e = r - y, back-calculation anti-windup"),
-            "sample_period_s": ts,
-            "current_limit_A": ilim,
-            "derivative_filter_s": df,
-            "friction_feedforward_scale_rad_s": ctrl.friction_scale,
-        },
-        "gains": tuned.to_dict(),
-        "gain_units": GAIN_UNITS,
-        "baselines": {
-            "relay_zn": {"rule": "relay test on the identified locked model + Ziegler-Nichols PI, no feed-forward",
-                         "gains": zn.to_dict(), "relay": relay_info},
-            "model_pi": {"rule": migo["rule"] + " (linearised sampled loops of the nominal identified plant), with the model's "
-                         "reference, inertia and friction feed-forward (kr = kj = kf = 1)", "gains": model_pi.to_dict(), "design": migo},
-        },  # fmt: skip
-        "references": ref_info,
-        "references_scaled": bool(opts["scale_references"]),
-        "tuning": {
-            "cost": "mean over plant sets and references of mean((r-T)^2)/A^2 + effort_weight*mean(di^2)/ilim^2, plus "
-                    "margin_weight * sum over linearised loops of max(0, Ms - ms_max)^2",
-            "optimiser": "start search (baselines, model-based PI scaled on a kp x ki grid), then optimistix.BFGS from the "
-                         "best `starts` candidates (reverse-mode gradients through the closed loop and the frequency response)",
-            "plants": int(opts["plants"]),
-            "noise_realisations": K,
-            "noise_sigma": {"torque": sigma[0], "motor_velocity": sigma[1]},
-            "substeps": int(opts["substeps"]),
-            "smoothing": {"velocity_scale": sm.velocity_scale, "torsion_rate_scale": sm.torsion_rate_scale},
-            "effort_weight": ew,
-            "ms_max": ms_max,
-            "margin_weight": mw,
-            "start_search": search,
-            "start_search_best": start_best["cost"],
-            "cost_before_optimiser": start_best["cost"],
-            "cost_after_optimiser": res.history[-1] if res.history else start_best["cost"],
-            "bfgs_runs": [{"start": search[j]["name"], "start_cost": search[j]["cost"], **r} for j, r in zip(picked, res.runs)],
-            "best_run": res.best_run,
-            "cost_history": res.history,
-        },
-        "model": model,
-        "validation": {
-            "on": kind,
-            "description": val_desc,
-            **val,
-            "improvement_over": improvement,
-        },
-        "notes": notes,
-        "figures": figs,
-        "timing_s": {"total": total_t, **timing},
+
+def _controller_section(ctrl: TorqueController, ts: float, ilim: float) -> dict:
+    """tune.json's `controller`: the control law, sample period (s), current limit (A), derivative
+    filter (s) and friction feed-forward smoothing scale (rad/s)."""
+    return {
+        "law": ("i = sat(kr*r/(N*Km) + kj*N*Jeff_hat*r/(J_L*Km) + kp*e + I - kd*dy_f + kf*Tf_hat(w)/Km"
+                " + kfr*Tf_hat(w_r)/Km) (J_L = load inertia, infinite when locked; w_r = N*(torsion rate of"
+                " the identified compliance following r + integral of r/J_L), the motor velocity the reference"
+                " asks for), e = r - y, back-calculation anti-windup"),
+        "sample_period_s": ts,
+        "current_limit_A": ilim,
+        "derivative_filter_s": ctrl.derivative_filter,
+        "friction_feedforward_scale_rad_s": ctrl.friction_scale,
     }
-    atomic_write_json(out / "tune.json", result)
-    atomic_write_text(out / "report.md", _report(result))
-    log(f"wrote {out / 'tune.json'} and {out / 'report.md'} in {total_t:.1f} s")
-    return result
+
+
+def _baselines_section(zn: TorqueGains, relay_info: dict, model_pi: TorqueGains, migo: dict) -> dict:
+    """tune.json's `baselines`: each baseline's rule, gains and design data."""
+    return {
+        "relay_zn": {"rule": "relay test on the identified locked model + Ziegler-Nichols PI, no feed-forward",
+                     "gains": zn.to_dict(), "relay": relay_info},
+        "model_pi": {"rule": migo["rule"] + " (linearised sampled loops of the nominal identified plant), with the model's "
+                     "reference, inertia and friction feed-forward (kr = kj = kf = 1)", "gains": model_pi.to_dict(), "design": migo},
+    }  # fmt: skip
+
+
+def _tuning_section(opts: dict, K: int, sigma, sm: Smoothing, search, start_best, res, picked) -> dict:
+    """tune.json's `tuning`: the cost and optimiser, their settings (noise σ in N·m and rad/s,
+    smoothing scales in rad/s), the start search and the BFGS runs."""
+    return {
+        "cost": "mean over plant sets and references of mean((r-T)^2)/A^2 + effort_weight*mean(di^2)/ilim^2, plus "
+                "margin_weight * sum over linearised loops of max(0, Ms - ms_max)^2",
+        "optimiser": "start search (baselines, model-based PI scaled on a kp x ki grid), then optimistix.BFGS from the "
+                     "best `starts` candidates (reverse-mode gradients through the closed loop and the frequency response)",
+        "plants": int(opts["plants"]),
+        "noise_realisations": K,
+        "noise_sigma": {"torque": sigma[0], "motor_velocity": sigma[1]},
+        "substeps": int(opts["substeps"]),
+        "smoothing": {"velocity_scale": sm.velocity_scale, "torsion_rate_scale": sm.torsion_rate_scale},
+        "effort_weight": float(opts["effort_weight"]),
+        "ms_max": float(opts["ms_max"]),
+        "margin_weight": float(opts["margin_weight"]),
+        "start_search": search,
+        "start_search_best": start_best["cost"],
+        "cost_before_optimiser": start_best["cost"],
+        "cost_after_optimiser": res.history[-1] if res.history else start_best["cost"],
+        "bfgs_runs": [{"start": search[j]["name"], "start_cost": search[j]["cost"], **r} for j, r in zip(picked, res.runs)],
+        "best_run": res.best_run,
+        "cost_history": res.history,
+    }
 
 
 TARE_SAMPLES = 200
