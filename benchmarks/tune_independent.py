@@ -34,30 +34,18 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from hdjax._bench import make_dataset  # noqa: E402
-from hdjax._control import TorqueController, TorqueGains  # noqa: E402
-from hdjax._data import load_dataset  # noqa: E402
-from hdjax._identify import run_fit  # noqa: E402
-from hdjax._tune import _bench_from_truth, _identified, _options, _references, _validate_bench, run_tune  # noqa: E402
+from hdjax import TorqueGains, load_dataset  # noqa: E402
+from hdjax.bench import make_dataset  # noqa: E402
+from hdjax.fit import run_fit  # noqa: E402
+from hdjax.tune import bench_tracking_cost, run_tune  # noqa: E402
 
 
 def structure_only(ds, out: pathlib.Path, r: dict) -> float:
     """Bench cost (mean over the same validation runs as `run_tune`) of the model-based PI with the
     reference-velocity friction feed-forward instead of the measured one."""
-    opts = _options({"tune": {}})
-    nominal, *_ = _identified(ds, {}, opts, out, lambda *a: None)
-    ctrl = TorqueController(friction=nominal, drive=ds.drive, sample_period=r["controller"]["sample_period_s"],
-                            current_limit=r["controller"]["current_limit_A"])
-    refs, info = _references(ds, ds.drive, opts, ctrl.sample_period, nominal, ctrl.current_limit)
     g = TorqueGains(**{**r["baselines"]["model_pi"]["gains"], "kf": 0.0, "kfr": 1.0})
-    bench = _bench_from_truth(ds)
-    costs = []
-    for k in range(int(opts["validation_runs"])):
-        traj, _ = _validate_bench(bench, {"x": g}, refs, ctrl, seed=int(opts["seed"]) + 1000 + k)
-        t = traj["x"]
-        costs.append(np.mean([np.mean((t["reference"][j] - t["torque"][j]) ** 2) / info[j]["amplitude"] ** 2
-                              for j in range(len(refs))]))
-    return float(np.mean(costs))
+    return bench_tracking_cost(ds, g, sample_period=r["controller"]["sample_period_s"],
+                               current_limit=r["controller"]["current_limit_A"], out=out)
 
 
 def main() -> int:

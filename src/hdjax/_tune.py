@@ -625,6 +625,30 @@ def _model_costs(parts, margins: dict) -> dict:
     }
 
 
+def bench_tracking_cost(dataset: Dataset, gains: TorqueGains, *, sample_period: float, current_limit: float,
+                        out: pathlib.Path, config: dict | None = None) -> float:
+    """Tracking cost, on the bench that made `dataset` (its `truth.yaml` from `hdjax.bench`), of a
+    controller with `gains` and the identified model's friction: the mean over `tune.validation_runs`
+    runs (the seeds of `run_tune`) and the four references of the squared torque error over the
+    reference amplitude squared. `sample_period` (s) and `current_limit` (A) as in tune.json's
+    `controller`; `out` is where the identification's fit.json is looked up, as by `run_tune`."""
+    opts = _options({"tune": {}} if config is None else config)
+    nominal, *_ = _identified(dataset, config or {}, opts, pathlib.Path(out), lambda *a: None)
+    ctrl = TorqueController(friction=nominal, drive=dataset.drive, sample_period=sample_period, current_limit=current_limit)
+    refs, info = _references(dataset, dataset.drive, opts, ctrl.sample_period, nominal, ctrl.current_limit)
+    bench = _bench_from_truth(dataset)
+    if bench is None:
+        raise ValueError(f"`bench_tracking_cost`: dataset {dataset.name!r} has no truth.yaml from hdjax.bench; "
+                         "give a dataset made by `hdjax.bench.make_dataset`.")
+    costs = []
+    for k in range(int(opts["validation_runs"])):
+        traj, _ = _validate_bench(bench, {"x": gains}, refs, ctrl, seed=int(opts["seed"]) + 1000 + k)
+        t = traj["x"]
+        costs.append(np.mean([np.mean((t["reference"][j] - t["torque"][j]) ** 2) / info[j]["amplitude"] ** 2
+                              for j in range(len(refs))]))
+    return float(np.mean(costs))
+
+
 def _validation_runs(bench, nominal_plant: Plant, gains: dict, refs, R, ctrl: TorqueController, sigma, n: int, opts: dict):
     """`tune.validation_runs` runs of every controller, on the bench when the dataset came from one,
     else on the identified model: [(traj, description)], and the description of the whole."""

@@ -1,14 +1,23 @@
-"""The independent virtual test bench (numpy only, written apart from hdjax's plant, solver and
-effect code; see `hdjax._bench` for what differs from the plant): datasets to judge an
-identification or a diagnosis on without the inverse crime, and closed-loop runs to validate
-controllers on."""
+"""The independent virtual test bench (public entry points of `hdjax._bench`): datasets that
+hdjax's identification, diagnosis and tuning are judged on, made without hdjax's plant, solver or
+model code (numpy fixed-step integrator, stick–slip friction with breakaway, a current loop,
+sensor dynamics, drives drawn around HD1/HD2; see the `hdjax._bench` module docstring for what
+differs from hdjax's plant).
+
+- `make_dataset(out_dir, *, drive, seed, ..., effects, deviations)`: write a SPEC §2 dataset folder
+  (with `truth.yaml`).
+- `simulate_dataset(...)`: the same session in memory.
+- `Deviations`: the real-bench deviations, each switchable (`Deviations.none()`: all off).
+- `Bench`, `pi_law`: closed-loop runs of a controller on the bench a dataset came from.
+"""
 
 from ._bench import (
-    EFFECTS as EFFECTS,
-    STATIONS as STATIONS,
     Bench as Bench,
     Deviations as Deviations,
+    Station as Station,
     make_dataset as make_dataset,
     pi_law as pi_law,
     simulate_dataset as simulate_dataset,
 )
+
+__all__ = ["Bench", "Deviations", "Station", "make_dataset", "pi_law", "simulate_dataset"]
