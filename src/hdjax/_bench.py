@@ -270,7 +270,11 @@ def _kick(t, t0):
 
 
 def _profiles(bench: dict, seed: int, n_locked: int, n_free: int, duration: float, t: np.ndarray) -> list[dict]:
-    """Commanded currents on the fine grid `t`: list of {name, mode, regime, kind, info, current}."""
+    """Commanded currents on the fine grid `t`: list of {name, mode, regime, kind, info, current}.
+
+    Long as a list of test designs (locked sweeps, free-motion regimes), each a few lines drawing from
+    one seeded generator; the order of the draws fixes every shipped dataset, and one function keeps
+    that order in sight."""
     st, p, brk = bench["station"], bench["params"], bench["breakaway"]
     rng = _rng(seed, "profiles")
     N, Km = st.gear_ratio, st.torque_constant
@@ -412,7 +416,10 @@ LOOP_RATE = 20000.0  # Hz, current-loop (PWM) update rate; the integrator's rate
 
 
 def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed, hook=None, hook_every=1):
-    """Fixed-step simulation of B records at once.
+    """Fixed-step simulation of B records at once. (One time loop over the fine grid whose state —
+    velocities, positions, stick/slip flags, sensor filters, current loop — is updated in place in
+    a fixed order; it stays one function so the order of the physics within a step reads top to
+    bottom.)
 
     `hook(n, H)`, if given, is called before fine step n whenever n % `hook_every` == 0, with the
     histories H filled up to row n; it may write `icmd[n:n + hook_every]` (a sampled controller
@@ -824,7 +831,8 @@ def simulate_dataset(
     low_speed: str = "stick_slip",
     fine_rate: float = 20000.0,
 ) -> tuple[list[dict], dict]:
-    """Simulate one bench session in memory.
+    """Simulate one bench session in memory. (Long through its options and the description of
+    every recorded column below; the body draws the bench, integrates and samples.)
 
     **Arguments:** as `make_dataset` (without `out_dir`), plus `fine_rate` (Hz), the integrator's
     step rate, rounded to a multiple of `sample_rate`.
@@ -1127,6 +1135,7 @@ class Bench:
     `Bench.from_truth(truth)` redraws the bench from the truth mapping's seed, drive, deviations,
     noise mode and sample rate, and checks that the drawn parameters are the recorded ones; hidden
     effects act with their recorded magnitudes (orders, phases, weights, τ, σ as recorded).
+    Long only through `closed_loop`'s description of what the controller sees.
     """
 
     def __init__(self, *, drive="hd1", seed=0, deviations=None, effects=None, noise="per_sensor",
@@ -1179,7 +1188,9 @@ class Bench:
 
     def closed_loop(self, law, reference, free, *, current_limit, seed=0, start_time=None, noise=True,
                     tare_samples=0) -> dict:  # fmt: skip
-        """Run a sampled controller on the bench, B runs at once.
+        """Run a sampled controller on the bench, B runs at once. (Long through this description
+        of the sensed signals and the returned arrays; the body is the controller hook that
+        `_integrate` calls at every sample.)
 
         At every sample instant t_k = k/sample_rate the controller sees the *sensed* signals:
         strain-gauge torque (true torque plus any torque-sensor ripple, through the drawn gauge
