@@ -309,11 +309,12 @@ def test_missing_gear_ratio(tmp_path):
         yaml_text="drive:\n  gear_ration: 160\n  torque_constant: 0.18\n"
         "experiments:\n  - file: a.csv\n    mode: constrained\n",
     )
-    with pytest.warns(UserWarning, match="gear_ration"):
+    with pytest.warns(UserWarning, match="gear_ration") as record:
         with pytest.raises(
             DatasetError, match=r"dataset\.yaml, line 1 \(`drive`\): `drive\.gear_ratio`.*missing.*gear_ration"
         ):
             load_dataset(folder)
+    assert record[0].filename == __file__  # the warning points at the caller of load_dataset
 
 
 @pytest.mark.parametrize("value", ["0", "-0.18", "abc", ".nan"])
@@ -505,6 +506,7 @@ def test_csv_extra_columns_warn_once(tmp_path):
     assert len(record) == 1
     msg = str(record[0].message)
     assert "a.csv" in msg and "`temperature`" in msg and "`comment`" in msg
+    assert record[0].filename == __file__  # the caller of load_dataset
     np.testing.assert_allclose(np.asarray(ds.experiments[0].torque), 3.0)  # the text column is never parsed
 
 

@@ -419,7 +419,7 @@ def _parse_drive(doc: dict, yaml_path, modes: list[str]) -> Drive | None:
         warnings.warn(
             f"{yaml_path}: ignoring unknown key(s) in the `drive` block: {hints}; known keys are {list(_DRIVE_KEYS)}.",
             DatasetWarning,
-            stacklevel=4,
+            stacklevel=3,  # the caller of `load_dataset`
         )
     why = "because the dataset has constrained or free-motion experiments"
     gear = _drive_number(doc, "gear_ratio", yaml_path, required=bool(dynamic), positive=True, why=why)
