@@ -1,6 +1,8 @@
 """The sampled torque loop: AD gradient vs central differences, tuning beats the rule-tuned PI on a
 small case, bad input refused with clear messages."""
 
+import pathlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,6 +22,7 @@ from hdjax._control import (
     tune_gains,
     ziegler_nichols_pi,
 )
+from hdjax._data import load_dataset
 from hdjax._model import Smoothing
 from hdjax._tune import _options
 from helpers import hd1
@@ -93,7 +96,8 @@ def test_bad_options_are_refused_with_the_field_named():
     with pytest.raises(ValueError, match=r"tune.fit.*does not exist"):
         from hdjax._tune import _find_fit
 
-        _find_fit(None, dict(_options({}), fit="/nonexistent/fit.json"), None)
+        _find_fit(load_dataset(pathlib.Path(__file__).parents[1] / "data" / "hd1"), dict(_options({}), fit="/nonexistent/fit.json"),
+                  pathlib.Path("unused"))
 
 
 def test_relay_without_oscillation_is_refused():

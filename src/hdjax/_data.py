@@ -116,15 +116,17 @@ class FrictionExperiment(eqx.Module):
     - `has_position`: 1.0 when `position` was measured, else 0.0.
     - `start_time`: time since the session began (s), 0 when not given.
     - `mask`: True on real samples, False on padding.
+
+    A stacked batch (`stack_friction`) has a leading experiment axis on every field (`*exp`).
     """
 
-    time: Float[Array, " time"]
-    velocity: Float[Array, " time"]
-    friction_torque: Float[Array, " time"]
-    position: Float[Array, " time"]
-    has_position: Float[Array, ""]
-    start_time: Float[Array, ""]
-    mask: Bool[Array, " time"]
+    time: Float[Array, "*exp time"]
+    velocity: Float[Array, "*exp time"]
+    friction_torque: Float[Array, "*exp time"]
+    position: Float[Array, "*exp time"]
+    has_position: Float[Array, "*exp"]
+    start_time: Float[Array, "*exp"]
+    mask: Bool[Array, "*exp time"]
 
     @property
     def n_samples(self) -> int:

@@ -30,6 +30,7 @@ physics of the drive but of the bench and of the paper model's fixed choices:
 """
 
 import dataclasses
+import typing
 
 import equinox as eqx
 import jax
@@ -66,6 +67,7 @@ def _zeros():
     return np.zeros(MAX_ORDER)
 
 
+@typing.no_type_check  # returns a numpy array standing in for an `Array` field (below); runtime checks skip it
 def _as_float(x) -> Array:
     # numbers become numpy arrays, so that building an `Effects` (a default argument at import)
     # does not start JAX's backends: `hdjax._sharding.use_host_devices` must run before that

@@ -26,19 +26,21 @@ class Experiment(eqx.Module):
     - `has_output_position`, `has_motor_position`: 1.0 where the channel was measured.
     - `start_time`: time since the session began (s), 0 when not given.
     - `mode`: 0 constrained, 1 free (see `MODES`).
+
+    A stacked batch (`stack_experiments`) has a leading experiment axis on every field (`*exp`).
     """
 
-    time: Float[Array, " time"]
-    current: Float[Array, " time"]
-    torque: Float[Array, " time"]
-    motor_velocity: Float[Array, " time"]
-    output_position: Float[Array, " time"]
-    motor_position: Float[Array, " time"]
-    mask: Bool[Array, " time"]
-    free: Float[Array, ""]
-    has_output_position: Float[Array, ""]
-    has_motor_position: Float[Array, ""]
-    start_time: Float[Array, ""]
+    time: Float[Array, "*exp time"]
+    current: Float[Array, "*exp time"]
+    torque: Float[Array, "*exp time"]
+    motor_velocity: Float[Array, "*exp time"]
+    output_position: Float[Array, "*exp time"]
+    motor_position: Float[Array, "*exp time"]
+    mask: Bool[Array, "*exp time"]
+    free: Float[Array, "*exp"]
+    has_output_position: Float[Array, "*exp"]
+    has_motor_position: Float[Array, "*exp"]
+    start_time: Float[Array, "*exp"]
 
     @property
     def n_samples(self) -> int:

@@ -324,7 +324,7 @@ class FrictionProblem:
                 "low-speed law instead (`hdjax._friction_lowspeed.fit_low_speed`, used by `fit` automatically).")
         return TIE_NONE if min(npos, nneg) >= need else (TIE_NEG_TO_POS if npos >= need else TIE_POS_TO_NEG)
 
-    def base_free(self, tie: int) -> np.ndarray:
+    def base_free(self, tie: int | np.integer) -> np.ndarray:
         free = np.zeros(N_PARAMS, bool)
         free[:7] = True
         if tie == TIE_NEG_TO_POS:
@@ -352,7 +352,7 @@ class FrictionProblem:
         lo = max(3.0 * self.smoothing.velocity_scale, 1e-3 * vmax)
         return np.geomspace(lo, max(vmax, 2 * lo), 10)
 
-    def start_eq9(self, w: np.ndarray, tie: int) -> np.ndarray:
+    def start_eq9(self, w: np.ndarray, tie: int | np.integer) -> np.ndarray:
         """Normalised start vector for one row: weighted linear least squares of eq. 9's six
         coefficients on a grid of `Tss2`, keeping the best."""
         best, x_best = np.inf, None
@@ -402,7 +402,7 @@ class FrictionProblem:
         on = self.mask & (w > 0)
         return float(np.sum((w * (pred - self.T) ** 2)[on]))
 
-    def predict_row(self, x: np.ndarray, tie: int, structure: FrictionStructure) -> np.ndarray:
+    def predict_row(self, x: np.ndarray, tie: int | np.integer, structure: FrictionStructure) -> np.ndarray:
         """Model torque (N·m) of one normalised vector on every sample, shape (experiment, time)."""
         return np.asarray(_predict_row(jnp.asarray(x), jnp.asarray(tie), self.data, structure, self.scale,
                                        self.smoothing))

@@ -86,8 +86,8 @@ class Smoothing(eqx.Module):
       in eq. 5. Default 1e-5 rad/s, below the torsion rate of a 0.1 N·m, 1 Hz locked test.
     """
 
-    velocity_scale: float = 1e-3
-    torsion_rate_scale: float = 1e-5
+    velocity_scale: float | Float[Array, ""] = 1e-3  # an array where traced (scale sweeps, vmap)
+    torsion_rate_scale: float | Float[Array, ""] = 1e-5
 
 
 def compliance_torque(

@@ -30,10 +30,10 @@ def current():
 class _NullTask:
     """Stand-in for `Task` when nothing shows progress."""
 
-    def advance(self, n: float = 1, *, info: str | None = None, line: str | None = None) -> None:
+    def advance(self, n: int | float = 1, *, info: str | None = None, line: str | None = None) -> None:
         pass
 
-    def update(self, *, total: float | None = None, info: str | None = None) -> None:
+    def update(self, *, total: int | float | None = None, info: str | None = None) -> None:
         pass
 
     def __enter__(self):
@@ -47,7 +47,7 @@ class Task:
     """One progress bar of a `RunLog` (a context manager; the bar goes when the block ends and a
     one-line summary is logged). `advance` may be called from any thread (JAX callbacks)."""
 
-    def __init__(self, runlog: "RunLog", description: str, total: float | None, unit: str):
+    def __init__(self, runlog: "RunLog", description: str, total: int | float | None, unit: str):
         self._log = runlog
         self.description = description
         self.total = total
@@ -61,7 +61,7 @@ class Task:
         self._id = self._log._add(self)
         return self
 
-    def advance(self, n: float = 1, *, info: str | None = None, line: str | None = None) -> None:
+    def advance(self, n: int | float = 1, *, info: str | None = None, line: str | None = None) -> None:
         """Count `n` more units done; `info` replaces the text shown beside the bar; `line` goes to
         run.log only (a detail not worth a screen line)."""
         self.completed += n
@@ -71,7 +71,7 @@ class Task:
         if line is not None:
             self._log._write(line)
 
-    def update(self, *, total: float | None = None, info: str | None = None) -> None:
+    def update(self, *, total: int | float | None = None, info: str | None = None) -> None:
         """Change the expected total or the text beside the bar."""
         if total is not None:
             self.total = max(total, self.completed)
@@ -158,7 +158,7 @@ class RunLog:
     def shows_bars(self) -> bool:
         return not self.quiet and self.console.is_terminal
 
-    def task(self, description: str, total: float | None = None, *, unit: str = "steps") -> Task:
+    def task(self, description: str, total: int | float | None = None, *, unit: str = "steps") -> Task:
         """A progress bar for `total` units of work (None: unknown, a spinner with elapsed time)."""
         return Task(self, description, total, unit)
 
@@ -210,7 +210,7 @@ class RunLog:
                 self._progress = None
 
 
-def task(log, description: str, total: float | None = None, *, unit: str = "steps"):
+def task(log, description: str, total: int | float | None = None, *, unit: str = "steps"):
     """A progress bar on `log` when it is a `RunLog` (else on the command's `current()` one when
     `log` is None), otherwise a do-nothing stand-in. Use as `with task(log, "fits", n) as t: ...`."""
     target = log if isinstance(log, RunLog) else (current() if log is None else None)

@@ -632,14 +632,15 @@ def bench_tracking_cost(dataset: Dataset, gains: TorqueGains, *, sample_period: 
     runs (the seeds of `run_tune`) and the four references of the squared torque error over the
     reference amplitude squared. `sample_period` (s) and `current_limit` (A) as in tune.json's
     `controller`; `out` is where the identification's fit.json is looked up, as by `run_tune`."""
-    opts = _options({"tune": {}} if config is None else config)
-    nominal, *_ = _identified(dataset, config or {}, opts, pathlib.Path(out), lambda *a: None)
-    ctrl = TorqueController(friction=nominal, drive=dataset.drive, sample_period=sample_period, current_limit=current_limit)
-    refs, info = _references(dataset, dataset.drive, opts, ctrl.sample_period, nominal, ctrl.current_limit)
     bench = _bench_from_truth(dataset)
-    if bench is None:
+    if bench is None or dataset.drive is None:
         raise ValueError(f"`bench_tracking_cost`: dataset {dataset.name!r} has no truth.yaml from hdjax.bench; "
                          "give a dataset made by `hdjax.bench.make_dataset`.")
+    drive = dataset.drive
+    opts = _options({"tune": {}} if config is None else config)
+    nominal, *_ = _identified(dataset, config or {}, opts, pathlib.Path(out), lambda *a: None)
+    ctrl = TorqueController(friction=nominal, drive=drive, sample_period=sample_period, current_limit=current_limit)
+    refs, info = _references(dataset, drive, opts, ctrl.sample_period, nominal, ctrl.current_limit)
     costs = []
     for k in range(int(opts["validation_runs"])):
         traj, _ = _validate_bench(bench, {"x": gains}, refs, ctrl, seed=int(opts["seed"]) + 1000 + k)
