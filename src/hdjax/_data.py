@@ -30,7 +30,9 @@ import math
 import os
 import pathlib
 import re
+import sys
 import tempfile
+import typing
 import warnings
 from typing import Any, NamedTuple
 
@@ -93,6 +95,18 @@ class DynamicPart(NamedTuple):
 class DatasetError(ValueError):
     """Bad dataset, CSV or config input. The message is one paragraph naming the file, the line,
     column or field, what is wrong and what to change."""
+
+
+@typing.no_type_check  # not wrapped by the runtime type checker: frame 1 must be the warning function
+def _caller_level() -> int:
+    """`stacklevel` for a `warnings.warn` in the function that calls this, so that the warning points
+    at the first frame outside hdjax (the code that called `load_dataset`), however deep the call
+    and whatever wrappers lie between (the test suite's runtime type checker adds a frame per call)."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and (frame.f_globals.get("__name__", "").split(".")[0] in ("hdjax", "jaxtyping", "beartype")
+                                 or frame.f_code.co_filename.startswith("<@beartype")):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 class DatasetWarning(UserWarning):
@@ -421,7 +435,7 @@ def _parse_drive(doc: dict, yaml_path, modes: list[str]) -> Drive | None:
         warnings.warn(
             f"{yaml_path}: ignoring unknown key(s) in the `drive` block: {hints}; known keys are {list(_DRIVE_KEYS)}.",
             DatasetWarning,
-            stacklevel=3,  # the caller of `load_dataset`
+            stacklevel=_caller_level(),  # the caller of `load_dataset`
         )
     why = "because the dataset has constrained or free-motion experiments"
     gear = _drive_number(doc, "gear_ratio", yaml_path, required=bool(dynamic), positive=True, why=why)
@@ -520,7 +534,7 @@ def _read_dataset_doc(yaml_path: pathlib.Path) -> dict:
             warnings.warn(
                 f"{yaml_path}: ignoring unknown top-level key `{k}`{_did_you_mean(str(k), _TOP_KEYS)}.",
                 DatasetWarning,
-                stacklevel=3,  # the caller of `load_dataset`
+                stacklevel=_caller_level(),  # the caller of `load_dataset`
             )
     return doc
 
@@ -571,7 +585,7 @@ def _parse_entry(doc: dict, i: int, entry, folder: pathlib.Path, yaml_path: path
             f"{yaml_path}, {_yaml_where(entry, unknown[0], field)}: ignoring unknown key(s) {hints}; "
             f"known keys are {list(_ENTRY_KEYS)}.",
             DatasetWarning,
-            stacklevel=3,  # the caller of `load_dataset`
+            stacklevel=_caller_level(),  # the caller of `load_dataset`
         )
     for key, fix in (
         ("file", "Add `file: <csv path relative to dataset.yaml>`."),
@@ -766,7 +780,7 @@ def _check_header(path: pathlib.Path, names: list[str], header_line: int, mode: 
         warnings.warn(
             f"{path}: ignoring column(s) not used by {mode} experiments: {hints}.",
             DatasetWarning,
-            stacklevel=4,  # the caller of `load_dataset`
+            stacklevel=_caller_level(),  # the caller of `load_dataset`
         )
     return [n for n in names if n in known]
 
