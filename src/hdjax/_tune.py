@@ -628,9 +628,9 @@ def _model_costs(parts, margins: dict) -> dict:
 def bench_tracking_cost(dataset: Dataset, gains: TorqueGains, *, sample_period: float, current_limit: float,
                         out: pathlib.Path, config: dict | None = None) -> float:
     """Tracking cost, on the bench that made `dataset` (its `truth.yaml` from `hdjax.bench`), of a
-    controller with `gains` and the identified model's friction: the mean over `tune.validation_runs`
-    runs (the seeds of `run_tune`) and the four references of the squared torque error over the
-    reference amplitude squared. `sample_period` (s) and `current_limit` (A) as in tune.json's
+    controller with `gains` and the identified model's friction: `run_tune`'s validation cost (the
+    mean over its `tune.validation_runs` runs and the four references of the squared torque error
+    over the reference amplitude squared). `sample_period` (s) and `current_limit` (A) as in tune.json's
     `controller`; `out` is where the identification's fit.json is looked up, as by `run_tune`."""
     bench = _bench_from_truth(dataset)
     if bench is None or dataset.drive is None:
@@ -641,20 +641,20 @@ def bench_tracking_cost(dataset: Dataset, gains: TorqueGains, *, sample_period: 
     nominal, *_ = _identified(dataset, config or {}, opts, pathlib.Path(out), lambda *a: None)
     ctrl = TorqueController(friction=nominal, drive=drive, sample_period=sample_period, current_limit=current_limit)
     refs, info = _references(dataset, drive, opts, ctrl.sample_period, nominal, ctrl.current_limit)
-    costs = []
-    for k in range(int(opts["validation_runs"])):
-        traj, _ = _validate_bench(bench, {"x": gains}, refs, ctrl, seed=int(opts["seed"]) + 1000 + k)
-        t = traj["x"]
-        costs.append(np.mean([np.mean((t["reference"][j] - t["torque"][j]) ** 2) / info[j]["amplitude"] ** 2
-                              for j in range(len(refs))]))
-    return float(np.mean(costs))
+    runs = [_validate_bench(bench, {"x": gains}, refs, ctrl, seed=seed)[0]["x"] for seed in _validation_seeds(opts)]
+    return _validation_costs(runs, info, ctrl.current_limit)["tracking_cost"]
+
+
+def _validation_seeds(opts: dict) -> list[int]:
+    """Noise seeds of the `tune.validation_runs` validation runs."""
+    return [int(opts["seed"]) + 1000 + k for k in range(int(opts["validation_runs"]))]
 
 
 def _validation_runs(bench, nominal_plant: Plant, gains: dict, refs, R, ctrl: TorqueController, sigma, n: int, opts: dict):
     """`tune.validation_runs` runs of every controller, on the bench when the dataset came from one,
     else on the identified model: [(traj, description)], and the description of the whole."""
-    runs = int(opts["validation_runs"])
-    seeds = [int(opts["seed"]) + 1000 + k for k in range(runs)]
+    seeds = _validation_seeds(opts)
+    runs = len(seeds)
     if bench is not None:
         trajs = [_validate_bench(bench, gains, refs, ctrl, seed=sd) for sd in seeds]
     else:
