@@ -94,7 +94,16 @@ from scipy.signal import lfilter
 
 from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PERIODIC, SCALAR, Effects
 from ._experiment import Experiment, stack_experiments
-from ._fit import DEFAULT_FREE, ParameterMap, experiment_residuals, make_parameter_map, process_noise as _process_noise, white_noise_level
+from ._fit import (
+    DEFAULT_FREE,
+    ParameterMap,
+    experiment_residuals,
+    fit_parameters,
+    make_parameter_map,
+    noise_levels,
+    process_noise as _process_noise,
+    white_noise_level,
+)
 from ._model import Drive, Parameters
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._sharding import experiment_mesh, for_each_experiment, map_experiments, pad_experiments
@@ -493,8 +502,6 @@ def _data_context(p_base: Parameters, batch: Experiment, sigma) -> dict:
 def _record_noise(experiments: list[Experiment], modes: np.ndarray, sigma, per_record: bool) -> np.ndarray:
     """Sensor-noise level per (experiment, channel): every record at its own (a bench may scale the
     noise with the range), or one level per channel."""
-    from ._fit import noise_levels
-
     sig_exp = np.tile(np.asarray(sigma), (len(experiments), 1))
     if per_record:
         sig_exp = np.stack([np.asarray(noise_levels(stack_experiments([e]))) for e in experiments])
@@ -1047,8 +1054,6 @@ def diagnose(
     model's description, traces and what is left unexplained. (Over 100 lines only through its
     options and this docstring; the body is those stages, about 70 lines.)
     """
-    from ._fit import fit_parameters, noise_levels
-
     timing = {}
     t0 = time.perf_counter()
     candidates, model_form = _check_names(candidates, model_form, cross_validation)
