@@ -468,8 +468,9 @@ def _sensitivity_summary(names, info, ok, blocks, sigma) -> dict:
                     v_sig.append(None)
                     v_si.append(None)
                 else:
-                    v_sig.append(float(np.sqrt(np.mean(blk[:, k] ** 2))))
-                    v_si.append(float(np.sqrt(np.mean(blk[:, k] ** 2))) * float(sigma[c]))
+                    rms = float(np.sqrt(np.mean(blk[:, k] ** 2)))
+                    v_sig.append(rms)
+                    v_si.append(rms * float(sigma[c]))
             rms_sig[ch], rms_si[ch] = v_sig, v_si
         summary[name] = {
             "information": [float(info[k, j]) if ok[j] else None for j in range(n_sel)],
