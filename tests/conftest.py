@@ -11,12 +11,11 @@ import os
 
 import jax
 
-from hdjax._sharding import HOST_DEVICES_ENV, use_host_devices
+from hdjax._sharding import HOST_DEVICES_ENV, available_cores, use_host_devices
 
 _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _workers > 1 and not os.environ.get(HOST_DEVICES_ENV):
-    _cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    use_host_devices(max(2, _cores // _workers))
+    use_host_devices(max(2, available_cores() // _workers))
 else:
     use_host_devices()
 jax.config.update("jax_enable_x64", True)

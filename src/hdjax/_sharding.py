@@ -53,6 +53,11 @@ AXIS = "exp"
 HOST_DEVICES_ENV = "HDJAX_HOST_DEVICES"
 
 
+def available_cores() -> int:
+    """The CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def use_host_devices(n: int | None = None) -> int | None:
     """Let JAX see the CPU as `n` host devices (default: `$HDJAX_HOST_DEVICES`, else the cores this
     process may run on), so that `fit_parameters`, `simulate_batch` and `diagnose` spread their
@@ -79,7 +84,7 @@ def use_host_devices(n: int | None = None) -> int | None:
             except ValueError:
                 raise ValueError(f"{HOST_DEVICES_ENV}={env!r}: give a whole number of CPU devices (1 switches spreading off).") from None
         else:
-            n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+            n = available_cores()
     if n <= 1:
         return None
     # first: XLA stops reading flags at a malformed one
