@@ -397,7 +397,7 @@ def main() -> None:
     lm = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, verbose=observe)
     t0 = time.perf_counter()
     res = fit_parameters(p0, ds.drive, batch, free=DEFAULT_FREE, simulator=simulator, solver=lm,
-                         max_steps=args.max_steps, sigma=sigma)
+                         max_steps=args.max_steps, sigma=sigma, throw=False)
     t_hdjax = time.perf_counter() - t0
     solver_name = type(getattr(simulator, "solver", None)).__name__
     print(f"hdjax: fit_parameters (optimistix LM, jacfwd through the {solver_name} simulation): {t_hdjax:.1f} s incl. "

@@ -150,7 +150,7 @@ def test_a_second_fit_of_the_same_shapes_reuses_the_compiled_program_and_gives_t
     p, drive, exps, _ = campaign
     first, second = hdjax.stack_experiments(exps[:3]), hdjax.stack_experiments(exps[3:])
     start = identify_paper(exps, drive).parameters()
-    kw = dict(max_steps=2, sigma=np.array([0.1, 0.03, 1e-4]))
+    kw = dict(max_steps=2, sigma=np.array([0.1, 0.03, 1e-4]), throw=False)
     fit_parameters(start, drive, first, **kw)
     before = _joint_fit_program.cache_info()
     reused = fit_parameters(start, drive, second, **kw)
@@ -162,3 +162,20 @@ def test_a_second_fit_of_the_same_shapes_reuses_the_compiled_program_and_gives_t
     for k in reused.free:
         np.testing.assert_allclose(float(getattr(reused.params, k)), float(getattr(fresh.params, k)), rtol=1e-12)
     assert reused.chi2_reduced == pytest.approx(fresh.chi2_reduced, rel=1e-12)
+
+
+def test_a_fit_that_stops_short_raises_unless_throw_is_false(campaign):
+    """The optimistix convention: `throw=True` (the default) raises when LM ends without converging;
+    `throw=False` returns the last iterate with `converged=False` and the result code."""
+    import optimistix as optx
+
+    p, drive, exps, _ = campaign
+    batch = hdjax.stack_experiments(exps[:3])
+    start = identify_paper(exps, drive).parameters()
+    start = start.replace(K1=1.5 * start.K1, Jeff=0.5 * start.Jeff)  # far from the optimum: 2 steps cannot reach it
+    kw = dict(max_steps=2, sigma=np.array([0.1, 0.03, 1e-4]))  # the shapes of the test above: no new compilation
+    with pytest.raises(RuntimeError, match="did not converge.*max_steps=2.*throw=False"):
+        fit_parameters(start, drive, batch, **kw)
+    res = fit_parameters(start, drive, batch, **kw, throw=False)
+    assert not res.converged and res.stop_reason == "max_steps" and res.steps == 2
+    assert res.result == optx.RESULTS.nonlinear_max_steps_reached

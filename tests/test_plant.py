@@ -180,3 +180,23 @@ def test_a_record_that_starts_stuck_starts_at_rest(tmp_path):
         tr = hdjax.simulate(p, ds.drive, exp, simulator=sim)
         rms = float(np.sqrt(np.mean((np.asarray(tr.torque) - np.asarray(exp.torque))[np.asarray(exp.mask)] ** 2)))
         assert rms < 1.3 * sig[0], (sim.solver, rms / sig[0])
+
+
+def test_select_experiments_spreads_half_constrained_half_free():
+    modes = ["constrained"] * 20 + ["free"] * 30
+    sel = hdjax.select_experiments(modes, 12)
+    assert len(sel) == 12 and sel == sorted(set(sel))
+    cons = [j for j in sel if modes[j] == "constrained"]
+    assert len(cons) == 6 and cons[0] == 0 and cons[-1] == 19  # evenly spread, both ends kept
+    free = [j for j in sel if modes[j] == "free"]
+    assert free[0] == 20 and free[-1] == 49
+    # the other mode fills the places one mode cannot; all are kept when there are no more
+    few = ["constrained"] * 2 + ["free"] * 30
+    assert [few[j] for j in hdjax.select_experiments(few, 12)].count("constrained") == 2
+    assert hdjax.select_experiments(modes[:5], 12) == list(range(5))
+    with pytest.raises(ValueError, match="max_n"):
+        hdjax.select_experiments(modes, 0)
+    # take_experiments picks the same experiments out of a stacked batch
+    exps = [sine_experiment(m, amplitude=0.5, freq=1.0 + j, duration=0.1) for j, m in enumerate(["constrained", "free", "free"])]
+    batch = hdjax.take_experiments(hdjax.stack_experiments(exps), [0, 2])
+    np.testing.assert_array_equal(np.asarray(batch.current), np.asarray(hdjax.stack_experiments([exps[0], exps[2]]).current))

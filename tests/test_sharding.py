@@ -42,7 +42,7 @@ batch = hdjax.stack_experiments(exps)
 sharded, n = shard_experiments(batch)
 traj = hdjax.simulate_batch(p, drive, batch, simulator=sim)
 start = p.replace(K1=p.K1 * 1.2, Jeff=p.Jeff * 0.8, Tsp=p.Tsp * 1.3)
-res = fit_parameters(start, drive, batch, free=("K1", "Jeff", "Tsp"), simulator=sim, max_steps=4)
+res = fit_parameters(start, drive, batch, free=("K1", "Jeff", "Tsp"), simulator=sim, max_steps=4, throw=False)
 print(json.dumps({
     "devices": jax.device_count(),
     "batch_devices": len(sharded.time.sharding.device_set),

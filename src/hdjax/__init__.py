@@ -23,7 +23,9 @@ from ._effects import EFFECT_NAMES as EFFECT_NAMES, Effects as Effects
 from ._experiment import (
     Experiment as Experiment,
     make_experiment as make_experiment,
+    select_experiments as select_experiments,
     stack_experiments as stack_experiments,
+    take_experiments as take_experiments,
     unstack_experiments as unstack_experiments,
 )
 from ._fit import (

@@ -1070,7 +1070,8 @@ def diagnose(
     # 2026-11-25). The loop's own noise model (step 3) whitens everything after the base fit.
     log(f"diagnose: refining the base model ({base_steps} LM steps on {n_exp} experiments)")
     base_sim = dataclasses.replace(simulator, rtol=max(simulator.rtol, 1e-5), atol=max(simulator.atol, 1e-7))
-    p_base = fit_parameters(p0, drive, batch, free=base_free, simulator=base_sim, max_steps=base_steps, sigma=sigma).params
+    p_base = fit_parameters(p0, drive, batch, free=base_free, simulator=base_sim, max_steps=base_steps, sigma=sigma,
+                            throw=False).params
     timing["base_fit"] = time.perf_counter() - t0
 
     # stage 2: every effect column, the compiled problem, the base simulation

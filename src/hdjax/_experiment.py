@@ -130,6 +130,31 @@ def stack_experiments(experiments: list[Experiment], length: int | None = None) 
     return Experiment(**fields)
 
 
+def select_experiments(modes: list[str], max_n: int) -> list[int]:
+    """Positions of an evenly spread subset of at most `max_n` experiments (all when there are no
+    more), half constrained and half free (the other mode fills the places one mode cannot),
+    each mode's picks evenly spread over its records. The one selection rule of every workflow
+    (the joint fit's `fit.trajectory.max_experiments`, `sensitivity.max_experiments`)."""
+    if max_n < 1:
+        raise ValueError(f"`select_experiments`: max_n must be at least 1, got {max_n}.")
+    if len(modes) <= max_n:
+        return list(range(len(modes)))
+    cons = [j for j, m in enumerate(modes) if m == "constrained"]
+    free = [j for j, m in enumerate(modes) if m != "constrained"]
+    n_c = min(len(cons), max(max_n // 2, max_n - len(free)))
+
+    def spread(lst: list[int], n: int) -> list[int]:
+        return [lst[int(round(j))] for j in np.linspace(0, len(lst) - 1, n)] if n > 0 else []
+
+    return sorted(spread(cons, n_c) + spread(free, max_n - n_c))
+
+
+def take_experiments(batch: Experiment, positions: list[int]) -> Experiment:
+    """The experiments at `positions` of a stacked batch, as a stacked batch (same padding)."""
+    idx = np.asarray(positions, dtype=int)
+    return jax.tree.map(lambda v: v[idx], batch)
+
+
 def unstack_experiments(batch: Experiment) -> list[Experiment]:
     """Inverse of `stack_experiments`, trimming the padding."""
     out = []

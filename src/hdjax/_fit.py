@@ -216,8 +216,7 @@ def nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
     return float(d / s) if s > 0 else float("nan")
 
 
-@dataclasses.dataclass
-class TrajectoryFit:
+class TrajectoryFit(eqx.Module):
     """Result of `fit_parameters`.
 
     **Attributes:**
@@ -235,11 +234,13 @@ class TrajectoryFit:
     - `stop_reason`: "tolerance" (optimistix's test), "gauss_newton_step_small" (the remaining
       Gauss–Newton step is under `step_se_tol` standard errors), "cost_stalled" (`STALL_WINDOW` LM
       steps lowered ½χ² by less than `cost_rtol`), see `CostStop`; or "max_steps".
+    - `result`: optimistix's result code (`optx.RESULTS.successful` when `converged`; otherwise
+      the reason, e.g. `optx.RESULTS.nonlinear_max_steps_reached`).
     """
 
     params: Parameters
-    free: tuple[str, ...]
-    std_error: dict
+    free: tuple[str, ...] = eqx.field(static=True)
+    std_error: dict[str, float]
     correlation: np.ndarray
     chi2_reduced: float
     converged: bool
@@ -247,6 +248,7 @@ class TrajectoryFit:
     sigma: np.ndarray
     jacobian_singular_values: np.ndarray
     stop_reason: str
+    result: optx.RESULTS
 
 
 def _covariance(J: np.ndarray, chi2: float):
@@ -402,6 +404,7 @@ def fit_parameters(
     step_se_tol: float = 0.1,
     cost_rtol: float = 1e-5,
     sigma=None,
+    throw: bool = True,
 ) -> TrajectoryFit:
     """Fit `free` parameters on the trajectory error of all experiments of `batch` at once.
 
@@ -416,7 +419,8 @@ def fit_parameters(
     steps in all), `step_se_tol` (also stop when the Gauss–Newton step left is shorter than this
     many standard errors), `cost_rtol` (also stop when `STALL_WINDOW` steps lower ½χ² by less than
     this fraction), see `CostStop`; `sigma` (channel noise levels; `fit_noise_levels` at `p0`, sensor plus process noise, when
-    None).
+    None); `throw` (as in optimistix: raise a `RuntimeError` when LM stops without converging;
+    with `throw=False` the result is returned and `result` / `converged` say how it ended).
 
     **Returns:** a `TrajectoryFit`.
     """
@@ -434,6 +438,11 @@ def fit_parameters(
         with _relayed("lm", callback):
             theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (pmap, p0, drive, batch, sigma)))
     stop = str(_stop_reason(result, reason))
+    if throw and stop == "max_steps":
+        raise RuntimeError(
+            f"`fit_parameters`: Levenberg–Marquardt did not converge ({optx.RESULTS[result]}, max_steps={max_steps}, "
+            f"{int(steps)} steps). Raise `max_steps`, or pass `throw=False` to get the last iterate with "
+            "`converged=False`.")
     theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
     n_obs = int(np.sum(r != 0.0))
     chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))
@@ -456,6 +465,7 @@ def fit_parameters(
         stop_reason=stop,
         sigma=np.asarray(sigma),
         jacobian_singular_values=np.linalg.svd(J, compute_uv=False),
+        result=result,
     )
 
 

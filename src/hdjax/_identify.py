@@ -11,7 +11,7 @@ import numpy as np
 
 from ._config import section_options
 from ._data import Dataset
-from ._experiment import stack_experiments
+from ._experiment import select_experiments, stack_experiments, take_experiments
 from ._fit import DEFAULT_FREE, fit_parameters, fit_per_experiment, nrmse
 from ._io import atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS
@@ -65,23 +65,6 @@ def _options(config: dict) -> dict:
     return opts
 
 
-def _select(dataset: Dataset, idx: list[int], max_n: int) -> list[int]:
-    """Evenly spread subset of `idx`, constrained and free alternating, at most `max_n`."""
-    cons = [i for i in idx if dataset.modes[i] == "constrained"]
-    free = [i for i in idx if dataset.modes[i] == "free"]
-    if len(idx) <= max_n:
-        return idx
-    n_c = min(len(cons), max(max_n // 2, max_n - len(free)))
-    n_f = min(len(free), max_n - n_c)
-
-    def spread(lst, n):
-        if n <= 0:
-            return []
-        return [lst[int(round(j))] for j in np.linspace(0, len(lst) - 1, n)]
-
-    return sorted(spread(cons, n_c) + spread(free, n_f))
-
-
 def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> dict:
     """Run the whole identification on `dataset` and write outputs into `out`. Returns fit.json."""
     t_start = time.time()
@@ -100,8 +83,8 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
 
     log("[2/4] joint trajectory-error fit (optimistix Levenberg–Marquardt through the diffrax plant)")
     sim_fit = trajectory_simulator(opts["trajectory"])
-    res, sel_pos, t_traj = _joint_fit(dataset, exps, drive, p0, free_names, sim_fit, opts, notes, log)
-    full = stack_experiments(exps)
+    full = stack_experiments(exps)  # once: the joint fit takes its subset from it
+    res, sel_pos, t_traj = _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log)
     per_fit, t_per = _per_experiment_fits(paper, res, drive, full, files, sim_fit, opts, notes, log)
     _lm_notes(res, undetermined, notes)
 
@@ -169,23 +152,23 @@ def _free_and_undetermined(opts: dict, modes: list[str], paper) -> tuple[list[st
     return [k for k in free_names if k not in undetermined], undetermined
 
 
-def _joint_fit(dataset: Dataset, exps, drive, p0, free_names, sim_fit, opts, notes, log):
-    """The joint trajectory-error LM fit on an evenly spread subset of the experiments, from the
-    paper's estimates `p0`. Returns the fit, the positions of the experiments used, and its time (s)."""
-    dyn = dataset.dynamic_indices()
-    sel = _select(dataset, dyn, int(opts["trajectory"]["max_experiments"]))
-    sel_pos = [dyn.index(i) for i in sel]
-    if len(sel) < len(dyn):
+def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
+    """The joint trajectory-error LM fit on an evenly spread subset (`select_experiments`) of the
+    stacked experiments `full`, from the paper's estimates `p0`. Returns the fit, the positions of
+    the experiments used, and its time (s)."""
+    sel_pos = select_experiments(modes, int(opts["trajectory"]["max_experiments"]))
+    if len(sel_pos) < len(modes):
         notes.append(
-            f"The trajectory-error fit used {len(sel)} of {len(dyn)} experiments (evenly spread over constrained and "
+            f"The trajectory-error fit used {len(sel_pos)} of {len(modes)} experiments (evenly spread over constrained and "
             f"free; `fit.trajectory.max_experiments`) to bound the run time on a CPU; all experiments are simulated "
             f"for the NRMSE figures."
         )
-    batch = stack_experiments([exps[j] for j in sel_pos])
+    batch = take_experiments(full, sel_pos)
     t0 = time.time()
     res = fit_parameters(
         p0, drive, batch, free=free_names, simulator=sim_fit, max_steps=int(opts["trajectory"]["max_steps"]),
         cost_rtol=float(opts["trajectory"]["cost_rtol"]), step_se_tol=float(opts["trajectory"]["step_se_tol"]),
+        throw=False,  # a fit that stops short is reported (`_lm_notes`), not an error
     )
     t_traj = time.time() - t0
     log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({t_traj:.1f} s)")

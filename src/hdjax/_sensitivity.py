@@ -33,7 +33,7 @@ import numpy as np
 from ._artifacts import fit_json_dataset, read_fit_json
 from ._config import section_options
 from ._data import Dataset
-from ._experiment import Experiment, stack_experiments
+from ._experiment import Experiment, select_experiments, stack_experiments
 from ._fit import CHANNELS, DEFAULT_FREE, noise_levels
 from ._io import atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
@@ -283,24 +283,6 @@ def workflow_simulator(opts: dict) -> Simulator:
     return Simulator(rtol=float(opts["rtol"]), atol=float(opts["rtol"]) * 1e-2, max_steps=int(opts["max_steps"]))
 
 
-def _spread(lst: list[int], n: int) -> list[int]:
-    if n >= len(lst):
-        return list(lst)
-    if n <= 0:
-        return []
-    return sorted({lst[int(round(j))] for j in np.linspace(0, len(lst) - 1, n)})
-
-
-def _select(modes: list[str], max_n: int) -> list[int]:
-    """Evenly spread subset of at most `max_n` positions, in proportion to the modes."""
-    if len(modes) <= max_n:
-        return list(range(len(modes)))
-    cons = [j for j, m in enumerate(modes) if m == "constrained"]
-    free = [j for j, m in enumerate(modes) if m == "free"]
-    n_c = min(len(cons), max(1 if cons else 0, int(round(max_n * len(cons) / len(modes)))))
-    return sorted(_spread(cons, n_c) + _spread(free, max_n - n_c))
-
-
 def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: dict, exps, log):
     """(Parameters, source dict, consistency, per-experiment estimates, paper identification or None)."""
     candidates = []
@@ -422,7 +404,7 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
 def _selection(exps, files_all, modes_all, opts, notes):
     """At most `sensitivity.max_experiments` experiments, evenly spread over constrained and free:
     their positions, files, modes and stacked batch."""
-    sel = _select(modes_all, int(opts["max_experiments"]))
+    sel = select_experiments(modes_all, int(opts["max_experiments"]))
     if len(sel) < len(exps):
         notes.append(
             f"Sensitivities, Fisher information and ablations use {len(sel)} of {len(exps)} experiments, evenly spread "
