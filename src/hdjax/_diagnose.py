@@ -89,6 +89,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
+from jaxtyping import Array, Bool, Float
 from scipy import stats
 from scipy.signal import lfilter
 
@@ -190,7 +191,7 @@ def _fixed_effect_settings(ctx: dict, active) -> Effects:
     return Effects(active=frozenset(active), tau=max(ctx["session_span"] / 2.0, 60.0), sigma=0.02 * ctx["torsion"])
 
 
-def _order_spectrum(res: np.ndarray, theta: np.ndarray):
+def _order_spectrum(res: Float[np.ndarray, " sample"], theta: Float[np.ndarray, " sample"]) -> Float[np.ndarray, " order"]:
     """Amplitude per order k = 1..MAX_ORDER of a least-squares fit of sin/cos(k θ) to `res`."""
     k = np.arange(1, MAX_ORDER + 1)
     A = np.concatenate([np.sin(np.outer(theta, k)), np.cos(np.outer(theta, k)), np.ones((len(theta), 1))], axis=1)
@@ -224,8 +225,8 @@ class _Problem(eqx.Module):
 
     pmap: ParameterMap
     cols: tuple = eqx.field(static=True)  # structure only: (effect, field, index) per column
-    scales: jax.Array
-    starts: jax.Array
+    scales: Float[Array, " column"]
+    starts: Float[Array, " column"]
     effects: Effects
     drive: Drive
     simulator: Simulator
@@ -292,7 +293,7 @@ class _Problem(eqx.Module):
         return r, J
 
 
-def _solve_normal(JtJ: np.ndarray, Jtr: np.ndarray) -> np.ndarray:
+def _solve_normal(JtJ: Float[np.ndarray, "z z"], Jtr: Float[np.ndarray, " z"]) -> Float[np.ndarray, " z"]:
     """Gauss–Newton step −(JᵀJ + εI)⁻¹Jᵀr, ε = 1e-9 × the mean diagonal (guards rank loss). Columns
     without information (a zero diagonal: the residual does not depend on them, e.g. where every
     simulation failed and the residual is the constant failure value) get a zero step."""
@@ -315,11 +316,11 @@ class _NoiseModel:
     prediction-error filter A(q) = 1 − Σ aᵢq⁻ⁱ and divides by the innovation std, so residuals of
     a correct model become white with unit variance (and Jacobian columns transform alike)."""
 
-    a: np.ndarray  # (exp, channel, order)
-    s: np.ndarray  # (exp, channel)
-    mask: np.ndarray  # (exp, time)
+    a: Float[np.ndarray, "exp channel lag"]  # AR coefficients
+    s: Float[np.ndarray, "exp channel"]  # innovation std
+    mask: Bool[np.ndarray, "exp time"]
 
-    def whiten(self, x: np.ndarray) -> np.ndarray:
+    def whiten(self, x: Float[np.ndarray, "exp channel time *column"]) -> Float[np.ndarray, "exp channel time *column"]:
         """x: (exp, channel, time, ...) → whitened, zero on padding."""
         out = np.zeros_like(x)
         for e in range(x.shape[0]):

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
+from jaxtyping import Array, Float
 from numpy.typing import ArrayLike
 
 from ._effects import Effects
@@ -51,9 +52,9 @@ class ParameterMap(eqx.Module):
     """Map between physical `Parameters` and the unconstrained vector that LM works on."""
 
     free: tuple[str, ...] = eqx.field(static=True)
-    scale: jax.Array
+    scale: Float[Array, " free"]
 
-    def to_theta(self, p: Parameters) -> jax.Array:
+    def to_theta(self, p: Parameters) -> Float[Array, " free"]:
         out = []
         for k, s in zip(self.free, self.scale):
             v = getattr(p, k)
@@ -67,7 +68,7 @@ class ParameterMap(eqx.Module):
                 out.append(v / s)
         return jnp.stack(out)
 
-    def to_params(self, theta: jax.Array, base: Parameters) -> Parameters:
+    def to_params(self, theta: Float[Array, " free"], base: Parameters) -> Parameters:
         values = {}
         for j, (k, s) in enumerate(zip(self.free, self.scale)):
             t = theta[j]
@@ -102,7 +103,7 @@ def white_noise_level(x: ArrayLike) -> float:
     return float(np.std(np.diff(np.asarray(x), 2)) / np.sqrt(6.0))
 
 
-def noise_levels(batch: Experiment) -> jax.Array:
+def noise_levels(batch: Experiment) -> Float[Array, " 3"]:
     """Per-channel white-noise level (torque N·m, velocity rad/s, output position rad) estimated from
     the data itself (`white_noise_level`). Median over experiments; position only over free-motion
     records."""
@@ -131,7 +132,9 @@ def noise_levels(batch: Experiment) -> jax.Array:
     return jnp.asarray(out)
 
 
-def process_noise(simulate, batch: Experiment, r_ref: np.ndarray, *, realisations: int = 2, seed: int = 0) -> np.ndarray:
+def process_noise(
+    simulate, batch: Experiment, r_ref: Float[np.ndarray, "exp 3 time"], *, realisations: int = 2, seed: int = 0
+) -> Float[np.ndarray, "realisation exp 3 time"]:
     """Change of the (weighted) residuals when white noise of the recorded current's own noise
     level is added to the current, shape (realisations, exp, channel, time): samples of the process
     noise that the current's sensor noise puts into every simulation (the simulation is driven by
@@ -150,7 +153,7 @@ def process_noise(simulate, batch: Experiment, r_ref: np.ndarray, *, realisation
 
 def process_noise_levels(
     p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator, realisations: int = 2, seed: int = 0
-) -> np.ndarray:
+) -> Float[np.ndarray, " 3"]:
     """Per-channel RMS of the *process noise* (same units as `noise_levels`, `process_noise` at the
     parameters `p`): how far the simulation of each channel moves when white noise of the recorded
     current's own noise level is added to the current. In free motion the output position does a
@@ -171,7 +174,7 @@ def _unit_residuals(p, drive, batch, simulator):
                                fixed_cost=is_fixed_cost(simulator))
 
 
-def fit_noise_levels(p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator) -> jax.Array:
+def fit_noise_levels(p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator) -> Float[Array, " 3"]:
     """The weights of a trajectory-error fit: per channel √(sensor² + process²), the sensor noise
     from the data (`noise_levels`) and the process noise that the recorded current's noise puts into
     the simulation at `p` (`process_noise_levels`). Weighting the free-motion output position by the
@@ -183,8 +186,13 @@ def fit_noise_levels(p: Parameters, drive: Drive, batch: Experiment, *, simulato
 
 
 def experiment_residuals(
-    p: Parameters, drive: Drive, exp: Experiment, sigma, simulator: Simulator, effects: Effects = Effects()
-):
+    p: Parameters,
+    drive: Drive,
+    exp: Experiment,
+    sigma: Float[Array, " 3"],
+    simulator: Simulator,
+    effects: Effects = Effects(),
+) -> Float[Array, "3 time"]:
     """Noise-weighted residuals of one experiment, shape (3, time); zero on padding and on channels
     that were not measured."""
     tr = simulate(p, drive, exp, effects=effects, simulator=simulator)
@@ -209,7 +217,7 @@ def experiment_residuals(
     return jnp.where(tr.success & jnp.all(jnp.isfinite(r)), r, 1e3)
 
 
-def nrmse(sim: np.ndarray, meas: np.ndarray) -> float:
+def nrmse(sim: Float[np.ndarray, " time"], meas: Float[np.ndarray, " time"]) -> float:
     """RMS(sim − meas) / RMS(meas − mean(meas)) (SPEC §3)."""
     d = np.sqrt(np.mean((sim - meas) ** 2))
     s = np.sqrt(np.mean((meas - np.mean(meas)) ** 2))
@@ -251,7 +259,7 @@ class TrajectoryFit(eqx.Module):
     result: optx.RESULTS
 
 
-def _covariance(J: np.ndarray, chi2: float):
+def _covariance(J: Float[np.ndarray, "residual free"], chi2: float) -> Float[np.ndarray, "free free"]:
     JtJ = J.T @ J
     try:
         cov = np.linalg.pinv(JtJ, rcond=1e-13) * chi2

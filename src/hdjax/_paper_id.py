@@ -57,6 +57,7 @@ import numpy as np
 import optimistix as optx
 import scipy.integrate
 import scipy.signal
+from jaxtyping import Array, Bool, Float
 
 from ._experiment import Experiment, stack_experiments
 from ._model import PARAMETER_NAMES, Drive, Parameters, Smoothing, friction_basis
@@ -158,16 +159,16 @@ class PaperIdentification:
 class _Prepared(eqx.Module):
     """Preprocessed batch, padded by repeating the last sample; `mask` marks real samples."""
 
-    torsion: jax.Array  # θm/N (rad), constrained reading θo = 0
-    torsion_rate: jax.Array  # ωm_filt/N (rad/s)
-    torque: jax.Array  # filtered T (N·m)
-    velocity: jax.Array  # filtered ωm (rad/s)
-    acceleration: jax.Array  # d(filtered ωm)/dt (rad/s²)
-    drive_torque: jax.Array  # Km·i − T_filt/N (N·m)
-    mask: jax.Array
+    torsion: Float[Array, "*exp time"]  # θm/N (rad), constrained reading θo = 0
+    torsion_rate: Float[Array, "*exp time"]  # ωm_filt/N (rad/s)
+    torque: Float[Array, "*exp time"]  # filtered T (N·m)
+    velocity: Float[Array, "*exp time"]  # filtered ωm (rad/s)
+    acceleration: Float[Array, "*exp time"]  # d(filtered ωm)/dt (rad/s²)
+    drive_torque: Float[Array, "*exp time"]  # Km·i − T_filt/N (N·m)
+    mask: Bool[Array, "*exp time"]
 
 
-def _lowpass(x: np.ndarray, fs: float, cutoff_hz: float, order: int) -> np.ndarray:
+def _lowpass(x: Float[np.ndarray, " time"], fs: float, cutoff_hz: float, order: int) -> Float[np.ndarray, " time"]:
     b, a = cast(tuple[np.ndarray, np.ndarray], scipy.signal.butter(order, cutoff_hz / (0.5 * fs)))  # output="ba"
     padlen = min(3 * max(len(a), len(b)), len(x) - 1)
     return scipy.signal.filtfilt(b, a, x, padlen=padlen)
@@ -230,7 +231,9 @@ def _take(prepared: _Prepared, idx) -> _Prepared:
 # Masked least squares (normal equations on normalised columns)
 
 
-def _masked_lstsq(A, y, w, active):
+def _masked_lstsq(
+    A: Float[Array, "time column"], y: Float[Array, " time"], w: Float[Array, " time"], active: Bool[Array, " column"]
+) -> tuple[Float[Array, " column"], Float[Array, ""]]:
     """Weighted LS `A θ ≈ y` on rows with weight `w` (0/1), using only `active` columns (others
     return 0). Columns are normalised; returns `(θ, λmin)` with λmin the smallest eigenvalue of
     the normalised normal matrix over the active columns (1 where none is active)."""
@@ -252,7 +255,7 @@ def _masked_lstsq(A, y, w, active):
 # Compliance
 
 
-def _compliance_design(p: _Prepared, alpha):
+def _compliance_design(p: _Prepared, alpha: float | Float[Array, ""]) -> Float[Array, "time 3"]:
     ones = jnp.ones_like(p.torsion)
     damping = smooth_signed_power(p.torsion_rate, alpha, _TORSION_RATE_SCALE)
     return jnp.stack([p.torsion, damping, ones], axis=-1)
