@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from hdjax import _bench
-from hdjax._data import load_dataset
+from hdjax import _bench, load_dataset
 
 SRC = pathlib.Path(_bench.__file__)
 TINY = {"n_locked": 2, "n_free": 2, "duration": 0.6}

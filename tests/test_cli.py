@@ -155,8 +155,7 @@ def test_default_output_folders():
 def test_fit_cutoff_reaches_the_paper_identification_of_every_command(command, monkeypatch, tmp_path):
     """`fit.cutoff_hz` (and alpha, Tss2) of the config reach the paper's regressions in `diagnose`
     and `tune` as they do in `fit` and `sensitivity` (both dropped it before)."""
-    from hdjax import _diagnose_report, _paper_id, _tune
-    from hdjax._data import load_dataset
+    from hdjax import _diagnose_report, _paper_id, _tune, load_dataset
 
     seen = {}
 

@@ -8,22 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hdjax._control import (
-    GainScaling,
-    Plant,
-    TorqueController,
-    TorqueGains,
-    batch_cost,
-    closed_loop,
-    relay_test,
-    sine_reference,
-    smooth_saturation,
-    step_reference,
-    tune_gains,
-    ziegler_nichols_pi,
-)
-from hdjax._data import load_dataset
-from hdjax._model import Smoothing
+from hdjax import Plant, Smoothing, TorqueController, TorqueGains, closed_loop, load_dataset, sine_reference, step_reference
+from hdjax._control import GainScaling, batch_cost, relay_test, smooth_saturation, tune_gains, ziegler_nichols_pi
 from hdjax._tune import _options
 from helpers import hd1
 

@@ -11,16 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from hdjax import Drive, Experiment, make_experiment
-from hdjax._data import (
-    DatasetError,
-    FrictionExperiment,
-    load_config,
-    load_dataset,
-    make_friction_experiment,
-    resolve_target,
-    write_dataset,
-)
+from hdjax import DatasetError, Drive, Experiment, load_dataset, make_experiment, write_dataset
+from hdjax._data import FrictionExperiment, load_config, make_friction_experiment, resolve_target
 
 DRIVE = Drive(gear_ratio=160.0, torque_constant=0.1815, load_inertia=0.5)
 
@@ -610,7 +602,7 @@ def test_write_dataset_overwrites_and_explicit_start_times(tmp_path):
 def test_dynamic_part_names_the_command_the_folder_and_the_fix(tmp_path):
     """Every command that simulates takes its experiments through `Dataset.dynamic_part`; a
     dataset without them gets one clear error (friction-only data: where they do go instead)."""
-    from hdjax._data import Dataset
+    from hdjax import Dataset
     from helpers import hd2, sine_experiment
 
     t = np.arange(200) * 1e-3

@@ -9,10 +9,8 @@ Whether the loop names hidden effects is judged on data the package did not make
 
 import numpy as np
 
-from hdjax import Effects
-from hdjax._diagnose import diagnose
-from hdjax._paper_id import identify_paper
-from hdjax._rig import campaign, run_campaign, station_hd1
+from hdjax import Effects, diagnose_effects as diagnose, identify_paper
+from hdjax.rig import campaign, run_campaign, station_hd1
 
 N_LOCKED, N_FREE, DURATION = 4, 4, 1.0
 
@@ -64,8 +62,8 @@ def test_process_noise_measures_the_current_noise_that_drives_the_simulation():
     ignores it."""
     import jax.numpy as jnp
 
+    from hdjax import make_experiment, stack_experiments
     from hdjax._diagnose import _process_noise
-    from hdjax._experiment import make_experiment, stack_experiments
 
     rng = np.random.default_rng(3)
     t = np.arange(4000) * 1e-3

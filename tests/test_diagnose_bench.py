@@ -19,10 +19,8 @@ import pathlib
 import jax
 import pytest
 
-from hdjax._bench import make_dataset
-from hdjax._data import load_dataset
-from hdjax._diagnose import diagnose
-from hdjax._paper_id import identify_paper
+from hdjax import diagnose_effects as diagnose, identify_paper, load_dataset
+from hdjax.bench import make_dataset
 
 jax.config.update("jax_enable_x64", True)
 

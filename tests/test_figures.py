@@ -8,8 +8,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 import pytest
 
+from hdjax import identify_paper
 from hdjax._identify import hysteresis_curves
-from hdjax._paper_id import identify_paper
 from test_paper_id import DRIVE, TRUE, constrained
 
 
@@ -43,9 +43,9 @@ def test_diagnosis_figures_draw_spectra_residuals_and_the_loop(tmp_path):
 
     import matplotlib.pyplot as plt
 
+    from hdjax import stack_experiments
     from hdjax._effects import MAX_ORDER
-    from hdjax._experiment import stack_experiments
-    from hdjax._plots import diagnosis_figures
+    from hdjax.plotting import diagnosis_figures
     from helpers import sine_experiment
 
     exps = [sine_experiment("constrained", duration=0.4), sine_experiment("free", duration=0.3)]

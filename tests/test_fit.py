@@ -10,10 +10,9 @@ import optimistix as optx
 import pytest
 
 import hdjax
-from hdjax._data import load_dataset, write_dataset
-from hdjax._fit import CostStop, _final_residual_and_jacobian, _stalled, fit_parameters, fit_per_experiment
-from hdjax._identify import run_fit
-from hdjax._paper_id import identify_paper
+from hdjax import fit_parameters, fit_per_experiment, identify_paper, load_dataset, write_dataset
+from hdjax._fit import CostStop, _final_residual_and_jacobian, _stalled
+from hdjax.fit import run_fit
 from helpers import hd2
 
 RUNS = [

@@ -7,10 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from hdjax import FrictionParameters, FrictionProblem, FrictionStructure, diagnose_friction, fit_coulomb_viscous, friction_model_torque, rms_stats
 from hdjax._data import make_friction_experiment
-from hdjax._friction import FRICTION_NAMES, FrictionParameters, FrictionStructure, friction_model_torque
-from hdjax._friction_diag import diagnose_friction
-from hdjax._friction_fit import FrictionProblem, fit_coulomb_viscous, rms_stats
+from hdjax._friction import FRICTION_NAMES
 
 jax.config.update("jax_enable_x64", True)
 
@@ -163,7 +162,7 @@ def test_bad_input_messages():
 
 def test_commands_on_friction_dataset(tmp_path):
     """`fit` and `diagnose` dispatch a friction-only dataset and write the SPEC §3 keys."""
-    from hdjax._data import load_dataset, write_dataset
+    from hdjax import load_dataset, write_dataset
     from hdjax._friction_cli import run_diagnose, run_fit
 
     exps = make_records(seed=6)
@@ -192,7 +191,7 @@ def test_filtered_rms_matches_matlab_filtfilt_by_hand():
     pass started from the steady state of its first sample."""
     from scipy import signal
 
-    from hdjax._friction_fit import filtered_rms
+    from hdjax import filtered_rms
 
     rng = np.random.default_rng(11)
     fs = 200.0
@@ -257,7 +256,7 @@ def test_low_speed_friction_fitted_by_presliding_law(tmp_path):
     law: LuGre's Coulomb level g(ω) falls from Fs towards Fc with speed (here ω ≪ vs, so g ≈ Fs),
     and it has bristle damping σ1 and viscous σ2 (together < 0.004 N·m here), which the Dahl law
     lacks; its stiffness σ0 is LuGre's σ0 and its Coulomb level ≈ Fs."""
-    from hdjax._data import load_dataset, write_dataset
+    from hdjax import load_dataset, write_dataset
     from hdjax._friction_cli import run_fit
     from hdjax._friction_lowspeed import fit_low_speed, low_speed_reason
 

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from hdjax._lm import MarquardtLM
+from hdjax import MarquardtLM
 
 jax.config.update("jax_enable_x64", True)
 

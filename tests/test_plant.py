@@ -162,9 +162,8 @@ def test_a_record_that_starts_stuck_starts_at_rest(tmp_path):
     interval, friction would stop the estimate within one sample) starts it at rest."""
     import yaml
 
-    from hdjax._bench import Deviations, make_dataset
-    from hdjax._data import load_dataset
-    from hdjax._fit import noise_levels
+    from hdjax import load_dataset, noise_levels
+    from hdjax.bench import Deviations, make_dataset
 
     jax.config.update("jax_enable_x64", True)
     make_dataset(tmp_path, drive="hd1", seed=801, n_locked=4, n_free=4, duration=1.5, deviations=Deviations.none())

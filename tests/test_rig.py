@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 
 import hdjax
-from hdjax import _rig
-from hdjax._data import load_dataset
+from hdjax import _rig, load_dataset
 
 TINY = {"n_constrained": 2, "n_free": 2, "duration": 0.3}
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import hdjax
-from hdjax._data import load_dataset, write_dataset
+from hdjax import load_dataset, write_dataset
 from hdjax._sensitivity import (
     _options,
     fisher_summary,

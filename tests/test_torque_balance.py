@@ -10,8 +10,8 @@ import jax
 import numpy as np
 import pytest
 
+from hdjax import Drive, Parameters
 from hdjax._diagnose import _torque_balance_cv, _torque_balance_spectrum
-from hdjax._model import Drive, Parameters
 
 jax.config.update("jax_enable_x64", True)
 

@@ -10,8 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hdjax import _bench, _loopshape as ls
-from hdjax._control import TorqueGains, sine_reference, step_reference
+from hdjax import TorqueGains, _bench, _loopshape as ls, sine_reference, step_reference
 from helpers import hd1
 
 jax.config.update("jax_enable_x64", True)
@@ -117,9 +116,8 @@ def test_user_data_is_validated_on_the_identified_model_and_says_so(tmp_path, mo
     heavy numerics are replaced by stand-ins; only the wording path is exercised."""
     import matplotlib.figure
 
-    from hdjax import _tune
+    from hdjax import _tune, load_dataset
     from hdjax._control import LoopTrajectory, TuneResult
-    from hdjax._data import load_dataset
 
     # a dataset without the bench's truth (the shipped ones come from the bench since 2026-11-26)
     src = pathlib.Path(__file__).parents[1] / "data" / "hd1"
