@@ -20,3 +20,4 @@ if _workers > 1 and not os.environ.get(HOST_DEVICES_ENV):
 else:
     use_host_devices()
 jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_dtype_promotion", "strict")

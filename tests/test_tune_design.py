@@ -142,7 +142,7 @@ def test_user_data_is_validated_on_the_identified_model_and_says_so(tmp_path, mo
 
     def fake_loop(g, plant, r, **kw):
         z = jnp.zeros_like(r.torque)
-        return LoopTrajectory(time=jnp.arange(r.torque.shape[0]) * 1e-3, reference=r.torque, torque=0.9 * r.torque,
+        return LoopTrajectory(time=jnp.arange(r.torque.shape[0], dtype=float) * 1e-3, reference=r.torque, torque=0.9 * r.torque,
                               measured_torque=r.torque, motor_velocity=z, output_velocity=z, current=z, command=z,
                               refined=z > 0)  # fmt: skip
 

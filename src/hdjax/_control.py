@@ -182,7 +182,7 @@ def step_reference(
     """A torque step of `amplitude` (N·m) at time `start` (s), `duration` s long; with `rise` > 0 (s)
     its edge is a smoothstep of that length (a step the drive can follow)."""
     n = int(round(duration / sample_period))
-    t = jnp.arange(n) * sample_period
+    t = jnp.arange(n, dtype=float) * sample_period
     return Reference(torque=amplitude * _edge(t + 0.5 * sample_period, start, rise), free=float(free))
 
 
@@ -191,7 +191,7 @@ def sine_reference(
 ) -> Reference:
     """A torque sine `amplitude·sin(2π·frequency·t)` (N·m, Hz), `duration` s long."""
     n = int(round(duration / sample_period))
-    t = jnp.arange(n) * sample_period
+    t = jnp.arange(n, dtype=float) * sample_period
     return Reference(torque=amplitude * jnp.sin(2.0 * jnp.pi * frequency * t), free=float(free))
 
 
@@ -204,7 +204,7 @@ def doublet_reference(
     rest instead of accelerating it without bound. With `rise` > 0 (s) each edge is a smoothstep of
     that length starting at the switching instant (the areas, hence the final speed, stay zero)."""
     n = int(round(duration / sample_period))
-    t = jnp.arange(n) * sample_period + 0.5 * sample_period
+    t = jnp.arange(n, dtype=float) * sample_period + 0.5 * sample_period
     e = lambda s: _edge(t, s, rise)  # noqa: E731
     return Reference(torque=amplitude * (e(start) - 2.0 * e(start + width) + e(start + 2 * width)), free=float(free))
 

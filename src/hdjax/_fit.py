@@ -291,7 +291,7 @@ def _gauss_newton_step_in_se(residual, jacobian):
     a difference of two residuals, so it does not see the ODE solver's jitter."""
     delta = jnp.linalg.lstsq(jacobian, -residual)[0]
     n = jnp.sum(residual != 0.0)
-    s2 = jnp.sum(residual**2) / jnp.maximum(n - jacobian.shape[1], 1)
+    s2 = jnp.sum(residual**2) / jnp.maximum(n - jacobian.shape[1], 1).astype(residual.dtype)
     return jnp.sqrt(jnp.sum((jacobian @ delta) ** 2) / jnp.maximum(s2, 1e-300))
 
 

@@ -113,5 +113,5 @@ def _marquardt_step(r, J, lam):
     diag = jnp.diag(A)
     fixed = diag == 0.0
     d = jnp.where(fixed, 1.0, diag)
-    dx = -jnp.linalg.solve(A + jnp.diag(lam * d + fixed), g) * ~fixed
+    dx = -jnp.linalg.solve(A + jnp.diag(lam * d + fixed.astype(d.dtype)), g) * (~fixed).astype(g.dtype)
     return dx, -(dx @ g) - 0.5 * dx @ (A @ dx)

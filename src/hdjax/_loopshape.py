@@ -26,6 +26,7 @@ $(k_p, k_i)$ grid, then used with the model's feed-forward (reference, inertia, 
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
@@ -90,7 +91,10 @@ def controller_response(gains, z, *, ts: float, derivative_filter: float):
     a = math.exp(-ts / derivative_filter)
     zi = 1.0 / z
     D = (1.0 - a) * (1.0 - zi) / (ts * (1.0 - a * zi))
-    return gains.kp + gains.ki * ts / (z - 1.0) + gains.kd * D
+    # real JAX gains cast to the complex dtype of z (what implicit promotion did; strict promotion
+    # refuses it); Python or numpy gains stay as they are
+    c = lambda k: k.astype(jnp.result_type(z)) if isinstance(k, jax.Array) else k  # noqa: E731
+    return c(gains.kp) + c(gains.ki * ts) / (z - 1.0) + c(gains.kd) * D
 
 
 def sensitivity_peak(gains, z, P, *, ts: float, derivative_filter: float):

@@ -176,7 +176,7 @@ class UniformLinearInput(eqx.Module):
         s = (t - self.t0) / self.dt
         n = self.values.shape[0]
         i = jnp.clip(jnp.floor(s), 0, n - 2).astype(int)
-        w = s - i
+        w = s - i.astype(s.dtype)
         return (1.0 - w) * self.values[i] + w * self.values[i + 1]
 
 
@@ -299,7 +299,7 @@ def simulate(
     # of the step), and one jittered first step would stretch the whole input's time axis
     n_valid = jnp.sum(exp.mask)
     t_last = exp.time[jnp.maximum(n_valid - 1, 1)]
-    dt = (t_last - exp.time[0]) / jnp.maximum(n_valid - 1, 1)
+    dt = (t_last - exp.time[0]) / jnp.maximum(n_valid - 1, 1).astype(t_last.dtype)
     # recorded current = true current + offset (SPEC §4b `sensor_offset`), removed once per solve
     true_current = exp.current - effects.current_offset if "sensor_offset" in effects.active else exp.current
     current = UniformLinearInput(exp.time[0], dt, true_current)
