@@ -5,7 +5,11 @@ diagnoses spread their experiments over devices. `HDJAX_HOST_DEVICES=1` runs it 
 Under pytest-xdist (`-n auto`, the default in pyproject.toml) each worker process takes its share
 of the cores, but at least 2 host devices, so that the sharded paths (padding, masked dummy
 experiments) run in every worker; measured on 2 cores, 2 workers × 2 devices and 2 workers × 1
-device took the same time (191 s / 197 s on test_stepper + test_control)."""
+device took the same time (191 s / 197 s on test_stepper + test_control).
+
+JAX's strict dtype promotion is on (`jax_numpy_dtype_promotion = "strict"`): an operation that mixes
+dtypes (int64 with float64, float with complex) must say so with an explicit cast, in hdjax and
+in the tests alike."""
 
 import os
 
