@@ -8,13 +8,9 @@ Whether the loop names hidden effects is judged on data the package did not make
 """
 
 import numpy as np
-import pytest
 
 from hdjax import Effects, diagnose_effects as diagnose, identify_paper
 from hdjax.rig import campaign, run_campaign, station_hd1
-
-# one xdist worker runs every diagnosis test: they share compiled programs (pyproject.toml)
-pytestmark = pytest.mark.xdist_group("diagnosis")
 
 N_LOCKED, N_FREE, DURATION = 4, 4, 1.0
 

@@ -24,9 +24,6 @@ from hdjax.bench import make_dataset
 
 jax.config.update("jax_enable_x64", True)
 
-# one xdist worker runs every diagnosis test: they share compiled programs (pyproject.toml)
-pytestmark = pytest.mark.xdist_group("diagnosis")
-
 N_LOCKED, N_FREE, DURATION, SNR = 4, 4, 1.5, 4.0
 PERIODIC = {"kinematic_error": 2, "torque_sensor_ripple": 3, "cogging": 1, "position_dependent_friction": 2}
 EFFECTS = list(PERIODIC) + [
