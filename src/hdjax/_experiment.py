@@ -149,8 +149,10 @@ def select_experiments(modes: list[str], max_n: int) -> list[int]:
     return sorted(spread(cons, n_c) + spread(free, max_n - n_c))
 
 
-def take_experiments(batch: Experiment, positions: list[int]) -> Experiment:
-    """The experiments at `positions` of a stacked batch, as a stacked batch (same padding)."""
+def take_experiments(batch: Experiment, positions) -> Experiment:
+    """The experiments at `positions` (a list or integer array; repeats allowed) of a stacked
+    batch, as a stacked batch with the same padding: its length stays that of `batch`, not that
+    of the longest experiment taken."""
     idx = np.asarray(positions, dtype=int)
     return jax.tree.map(lambda v: v[idx], batch)
 

@@ -33,7 +33,7 @@ import numpy as np
 from ._artifacts import fit_json_dataset, read_fit_json
 from ._config import section_options
 from ._data import Dataset
-from ._experiment import Experiment, select_experiments, stack_experiments
+from ._experiment import Experiment, select_experiments, stack_experiments, take_experiments
 from ._fit import CHANNELS, DEFAULT_FREE, noise_levels
 from ._io import atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
@@ -622,7 +622,7 @@ def _ablations(p, drive, batch, sens, ok, modes, files, opts, simulator):
     sets = [change(p) for (_, _, _, change) in ABLATIONS]
     P = jax.tree.map(lambda *x: jnp.stack(x), *[sets[a] for a, _ in lanes_idx])
     idx = np.array([j for _, j in lanes_idx])
-    lanes = jax.tree.map(lambda x: x[idx], batch)
+    lanes = take_experiments(batch, idx)
     tr = jax.block_until_ready(simulate_lanes(P, drive, lanes, simulator=simulator))
     succ = np.asarray(tr.success)
     mask = np.asarray(batch.mask)
