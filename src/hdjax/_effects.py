@@ -63,6 +63,26 @@ MODEL_FORM_NAMES = tuple(MODEL_FORM)
 SCALAR_FIELDS = {**SCALAR, **MODEL_FORM}
 
 
+_ORDERS = np.arange(1, MAX_ORDER + 1, dtype=float)  # the orders of `Effects`' harmonic slots
+
+
+def harmonic_sum(angle, orders, sin_coef, cos_coef):
+    """$\\sum_k s_k\\sin(k\\theta) + c_k\\cos(k\\theta)$ over harmonic slots (last axis of
+    `orders`, `sin_coef`, `cos_coef`); a slot of order 0 is off. `angle` θ (rad) of any shape.
+    The one periodic term of the package: `Effects`' fixed orders 1..`MAX_ORDER` and the
+    friction-only fits' free slots both evaluate it."""
+    orders = jnp.asarray(orders, dtype=float)
+    on = (orders > 0).astype(float)
+    ang = orders * jnp.asarray(angle)[..., None]
+    return jnp.sum(on * (sin_coef * jnp.sin(ang) + cos_coef * jnp.cos(ang)), axis=-1)
+
+
+def thermal_factor(beta, tau, t_session):
+    """`thermal_drift`'s factor on the viscous torque, $1 + \\beta e^{-t_{session}/|\\tau|}$
+    ($\\beta$ -, $\\tau$ s, session time s)."""
+    return 1.0 + beta * jnp.exp(-t_session / jnp.abs(tau))
+
+
 def _zeros():
     return np.zeros(MAX_ORDER)
 
@@ -119,21 +139,14 @@ class Effects(eqx.Module):
         """$\\sum_k s_k\\sin(k\\theta_m) + c_k\\cos(k\\theta_m)$ for a periodic effect (0 if inactive)."""
         if name not in self.active:
             return jnp.zeros_like(theta_m)
-        k = jnp.arange(1, MAX_ORDER + 1, dtype=float)
-        ang = k * jnp.asarray(theta_m)[..., None]
-        s = getattr(self, f"{name}_sin")
-        c = getattr(self, f"{name}_cos")
-        return jnp.sum(s * jnp.sin(ang) + c * jnp.cos(ang), axis=-1)
+        return harmonic_sum(theta_m, _ORDERS, getattr(self, f"{name}_sin"), getattr(self, f"{name}_cos"))
 
     def periodic_rate(self, name: str, theta_m, omega_m):
         """Time derivative of `periodic(name, θm)` along θm' = ωm."""
         if name not in self.active:
             return jnp.zeros_like(theta_m)
-        k = jnp.arange(1, MAX_ORDER + 1, dtype=float)
-        ang = k * jnp.asarray(theta_m)[..., None]
-        s = getattr(self, f"{name}_sin")
-        c = getattr(self, f"{name}_cos")
-        return jnp.sum(k * (s * jnp.cos(ang) - c * jnp.sin(ang)), axis=-1) * omega_m
+        s, c = getattr(self, f"{name}_sin"), getattr(self, f"{name}_cos")
+        return harmonic_sum(theta_m, _ORDERS, -_ORDERS * c, _ORDERS * s) * omega_m
 
     def amplitudes(self, name: str):
         """(orders, amplitudes, phases) of a periodic effect for reports, as numpy-ready arrays."""

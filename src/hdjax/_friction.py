@@ -38,8 +38,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._effects import THERMAL_TAU
-from ._model import PARAMETER_UNITS, Smoothing, _as_float
+from ._effects import THERMAL_TAU, harmonic_sum, thermal_factor
+from ._model import PARAMETER_UNITS, Smoothing, _as_float, friction_parts
 from ._smooth import smooth_sign, smooth_step
 
 FRICTION_NAMES = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")
@@ -116,9 +116,15 @@ def presliding_state(
     return _dahl(jnp.asarray(distance, dtype=float), v, t, smoothing.velocity_scale)
 
 
-def _dahl_with_sensitivity(distance, v, t, scale):
+def dahl_recurrence(distance, v, t, scale, *, target=None, s0=None):
+    """The presliding Dahl recurrence $s_n = a_n s_{n-1} + (1 - a_n) b_n$, $a_n = e^{-|\\omega_n| h_n/\\delta}$,
+    and its derivative in $\\delta$, in one scan. The target $b$ is sign(ω) smoothed at `scale`
+    unless given; the state before the first sample is `s0` (default $b_0$: the steady state).
+    This is `_effects.dahl_rate`'s law, $\\dot s = (|\\omega|/\\delta)(\\mathrm{sign}\\,\\omega - s)$,
+    solved exactly for a velocity held over each sample interval."""
     h = jnp.diff(t, prepend=t[:1])
-    target = smooth_sign(v, scale)
+    target = smooth_sign(v, scale) if target is None else target
+    s0 = target[0] if s0 is None else jnp.asarray(s0, dtype=float)
     rate = jnp.abs(v) * h
     decay = jnp.exp(-rate / distance)
     ddecay = decay * rate / distance**2  # d(decay)/d(distance)
@@ -128,8 +134,7 @@ def _dahl_with_sensitivity(distance, v, t, scale):
         a, da, b = inputs
         return (a * s + (1.0 - a) * b, a * z + da * (s - b)), (s, z)
 
-    (s_last, z_last), (s_prev, z_prev) = jax.lax.scan(step, (target[0], jnp.zeros(())), (decay, ddecay, target),
-                                                      unroll=16)
+    (s_last, z_last), (s_prev, z_prev) = jax.lax.scan(step, (s0, jnp.zeros(())), (decay, ddecay, target), unroll=16)
     # outputs are the carries *before* each step: shift by one to get the state after it
     s = jnp.concatenate([s_prev[1:], s_last[None]])
     z = jnp.concatenate([z_prev[1:], z_last[None]])
@@ -138,21 +143,14 @@ def _dahl_with_sensitivity(distance, v, t, scale):
 
 @jax.custom_jvp
 def _dahl(distance, v, t, scale):
-    return _dahl_with_sensitivity(distance, v, t, scale)[0]
+    return dahl_recurrence(distance, v, t, scale)[0]
 
 
 @_dahl.defjvp
 def _dahl_jvp(primals, tangents):
     distance, v, t, scale = primals
-    s, z = _dahl_with_sensitivity(distance, v, t, scale)
+    s, z = dahl_recurrence(distance, v, t, scale)
     return s, z * tangents[0]
-
-
-def _harmonics(position, orders, sin_coef, cos_coef):
-    """$\\sum_k [k > 0]\\,(c^s_k \\sin(k\\theta) + c^c_k \\cos(k\\theta))$ for one record."""
-    on = (orders > 0).astype(float)
-    phase = position[:, None] * orders[None, :]
-    return (jnp.sin(phase) * (on * sin_coef)[None, :] + jnp.cos(phase) * (on * cos_coef)[None, :]).sum(-1)
 
 
 def friction_model_torque(
@@ -189,13 +187,10 @@ def friction_model_torque(
         return sg, up
 
     s, us = jax.lax.cond(structure.presliding > 0.5, with_state, without_state, None)
-    coulomb = (p.Tsp * us + p.Tsn * (1.0 - us)) * s
-    stribeck = (p.Tssp1 * us + p.Tssn1 * (1.0 - us)) * s * jnp.exp(-((v / p.Tss2) ** 2))
-    t_session = start_time + t
-    thermal = 1.0 + structure.thermal * p.thermal_beta * jnp.exp(-t_session / p.thermal_tau)
-    viscous = (p.Tvp * up + p.Tvn * (1.0 - up)) * v * thermal
-    ripple = has_position * _harmonics(theta, structure.ripple_orders, p.ripple_sin, p.ripple_cos)
-    additive = has_position * _harmonics(theta, structure.torque_orders, p.torque_sin, p.torque_cos)
+    viscous, coulomb, stribeck = friction_parts(p, v, smoothing, direction=(s, us))
+    viscous = viscous * thermal_factor(structure.thermal * p.thermal_beta, p.thermal_tau, start_time + t)
+    ripple = has_position * harmonic_sum(theta, structure.ripple_orders, p.ripple_sin, p.ripple_cos)
+    additive = has_position * harmonic_sum(theta, structure.torque_orders, p.torque_sin, p.torque_cos)
     return viscous + coulomb * (1.0 + ripple) + stribeck + additive
 
 

@@ -22,10 +22,11 @@ import dataclasses
 import math
 import types
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._friction import FRICTION_NAMES, MAX_ORDERS, STATE_SCALE, FrictionStructure
+from ._friction import FRICTION_NAMES, MAX_ORDERS, STATE_SCALE, FrictionStructure, presliding_state
 from ._friction_fit import (
     I_BETA,
     I_LDELTA,
@@ -40,6 +41,8 @@ from ._friction_fit import (
     rms_stats,
     vector_to_params,
 )
+from ._model import Smoothing, friction_basis, friction_parts
+from ._smooth import smooth_step
 
 MAX_FOLDS = 5
 N_BLOCKS = 5
@@ -104,18 +107,12 @@ def choose_orders(problem: FrictionProblem, theta, r, g, on, *, max_order: int, 
     return orders, coef
 
 
-def dahl_state_np(v, t, delta, sc):
-    """Dahl state of `_friction.presliding_state` in numpy, vectorised over the leading axes of
-    `delta` (broadcast against records `v`, `t` of shape (experiment, time))."""
-    h = np.diff(t, axis=-1, prepend=t[..., :1])
-    target = np.tanh(v / sc)
-    delta = np.asarray(delta)[..., None, None]
-    a = np.exp(-np.abs(v) * h / delta)
-    s: np.ndarray = np.empty(np.broadcast_shapes(a.shape, target.shape))
-    s[..., 0] = target[..., 0]
-    for n in range(1, s.shape[-1]):
-        s[..., n] = a[..., n] * s[..., n - 1] + (1 - a[..., n]) * target[..., n]
-    return s
+def presliding_states(v, t, delta, smoothing: Smoothing) -> np.ndarray:
+    """`hdjax.presliding_state` for every record `v`, `t` (experiment, time) and every presliding
+    distance of `delta` (grid,): shape (grid, experiment, time)."""
+    per_record = jax.vmap(presliding_state, in_axes=(0, 0, None, None))
+    return np.asarray(jax.vmap(per_record, in_axes=(None, None, 0, None))(
+        jnp.asarray(v), jnp.asarray(t), jnp.asarray(delta, dtype=float), smoothing))
 
 
 @dataclasses.dataclass(eq=False)
@@ -219,7 +216,6 @@ def problem_params(problem: FrictionProblem, fold: _Fold) -> types.SimpleNamespa
 def _start_delta(problem: FrictionProblem, fold: _Fold, w: np.ndarray) -> float:
     """Presliding distance (rad) from a grid: Dahl state replacing sign, eq. 9 refitted linearly."""
     p = problem_params(problem, fold)
-    sc = problem.smoothing.velocity_scale
     v, t = problem.v, np.asarray(problem.data.time)
     idx = np.asarray(problem.index)
     on = ((w > 0) & problem.mask)[:, idx]
@@ -227,16 +223,14 @@ def _start_delta(problem: FrictionProblem, fold: _Fold, w: np.ndarray) -> float:
     h = float(np.median(np.diff(t[0])))
     dmin = max(float(np.quantile(vabs, 0.5)) * h, 1e-7)
     grid = dmin * np.geomspace(1.0, 1e3, 7)
-    S = dahl_state_np(v, t, grid, sc)[..., idx]  # (grid, E, n)
+    S = presliding_states(v, t, grid, problem.smoothing)[..., idx]  # (grid, E, n)
     vv = v[:, idx]
-    up = 0.5 * (1 + np.tanh(vv / sc))
-    st = np.exp(-((vv / p.Tss2) ** 2))
     y = problem.T[:, idx][on]
     best, d_best = np.inf, grid[0]
     for g in range(len(grid)):
         s = S[g]
-        us = 0.5 * (1 + np.tanh(s / STATE_SCALE))
-        A = np.stack([vv * up, vv * (1 - up), s * us, s * (1 - us), s * us * st, s * (1 - us) * st], -1)[on]
+        us = smooth_step(s, STATE_SCALE)
+        A = np.asarray(friction_basis(vv, p.Tss2, problem.smoothing, direction=(s, us)))[on]
         _, sse = _lstsq_gain(A, y)
         if sse < best:
             best, d_best = sse, grid[g]
@@ -246,11 +240,9 @@ def _start_delta(problem: FrictionProblem, fold: _Fold, w: np.ndarray) -> float:
 def _start_thermal(problem: FrictionProblem, fold: _Fold, r, on, idx) -> tuple[float, float]:
     """(beta, tau): viscous part × exp(−t_session/τ) regressed on the residual over a τ grid."""
     p = problem_params(problem, fold)
-    sc = problem.smoothing.velocity_scale
     v = problem.v[:, idx]
     ts = (np.asarray(problem.data.start_time)[:, None] + np.asarray(problem.data.time))[:, idx]
-    up = 0.5 * (1 + np.tanh(v / sc))
-    visc = (p.Tvp * up + p.Tvn * (1 - up)) * v
+    visc = np.asarray(friction_parts(p, v, problem.smoothing)[0])
     span = max(float(np.ptp(ts[on])), 1e-6)
     t0 = float(np.min(ts[on]))
     best = (np.inf, 0.0, span)

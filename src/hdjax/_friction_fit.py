@@ -44,7 +44,7 @@ from ._friction import (
     friction_model_torque,
 )
 from ._lm import MarquardtLM
-from ._model import Smoothing
+from ._model import Smoothing, friction_basis
 
 M = MAX_ORDERS
 I_TVP, I_TVN, I_TSP, I_TSN, I_TSSP1, I_TSSN1, I_LTSS2 = range(7)
@@ -337,13 +337,8 @@ class FrictionProblem:
 
     # ---------------------------------------------------------------- eq. 9 start values
     def basis(self, Tss2: float) -> np.ndarray:
-        """Eq. 9 regressors (experiment, time, 6) at `Tss2`, numpy (same smoothing as the model)."""
-        sc = self.smoothing.velocity_scale
-        v = self.v
-        up = 0.5 * (1.0 + np.tanh(v / sc))
-        sg = np.tanh(v / sc)
-        st = np.exp(-((v / Tss2) ** 2))
-        return np.stack([v * up, v * (1 - up), sg * up, sg * (1 - up), sg * up * st, sg * (1 - up) * st], -1)
+        """Eq. 9 regressors (experiment, time, 6) at `Tss2` (`hdjax.friction_basis`, the model's smoothing)."""
+        return np.asarray(friction_basis(jnp.asarray(self.v), Tss2, self.smoothing))
 
     def tss2_grid(self) -> np.ndarray:
         if self.Tss2 is not None:
@@ -541,9 +536,10 @@ def rms_stats(pred: np.ndarray, meas: np.ndarray, w: np.ndarray, fs=None) -> dic
 
 
 def coulomb_viscous_basis(v: np.ndarray, smoothing: Smoothing) -> np.ndarray:
-    """Regressors (..., 2) of symmetric Coulomb + viscous friction, `Tv·ω + Tc·sign(ω)`, with the
-    same smooth sign as eq. 9: eq. 9 with `Tvp = Tvn`, `Tsp = Tsn` and no Stribeck term."""
-    return np.stack([v, np.tanh(v / smoothing.velocity_scale)], -1)
+    """Regressors (..., 2) of symmetric Coulomb + viscous friction, `Tv·ω + Tc·sign(ω)`: eq. 9's
+    columns (`hdjax.friction_basis`) with `Tvp = Tvn`, `Tsp = Tsn` and no Stribeck term."""
+    b = np.asarray(friction_basis(jnp.asarray(v), 1.0, smoothing))
+    return np.stack([b[..., 0] + b[..., 1], b[..., 2] + b[..., 3]], -1)
 
 
 def fit_coulomb_viscous(problem: "FrictionProblem", w: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:

@@ -29,9 +29,12 @@ are reported.
 
 import dataclasses
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
+from ._friction import dahl_recurrence
 from ._friction_fit import FrictionProblem, rms_stats
 
 LOW_SPEED_LIMIT = 0.01  # rad/s: records whose 98th percentile |ω| is below this use the low-speed law
@@ -58,22 +61,19 @@ def dahl_state_exact(v: np.ndarray, t: np.ndarray, delta) -> tuple[np.ndarray, n
     """Dahl state from $z_0 = 0$ and the decay of the initial state, shapes (grid, experiment, time)
     for presliding distances `delta` (grid,): $z_n = a_n z_{n-1} + (1 - a_n)\\,\\mathrm{sign}(\\omega_n)$,
     $a_n = e^{-|\\omega_n| h_n/\\delta}$ (exact for velocity held over the interval ending at sample n;
-    padding with a repeated time holds the state). The state with initial value $z_0$ is
-    `z + z0 * decay`."""
-    h = np.diff(t, axis=-1, prepend=t[..., :1])
-    dx = np.abs(v) * h
-    target = np.sign(v)
-    d = np.asarray(delta, dtype=float)[:, None]
-    z = np.zeros((d.shape[0],) + v.shape)
-    P = np.ones_like(z)
-    zc = np.zeros((d.shape[0], v.shape[0]))
-    pc = np.ones_like(zc)
-    for n in range(v.shape[-1]):
-        a = np.exp(-dx[:, n][None, :] / d)
-        zc = a * zc + (1.0 - a) * target[:, n][None, :]
-        pc = a * pc
-        z[:, :, n], P[:, :, n] = zc, pc
-    return z, P
+    padding with a repeated time holds the state), with the exact sign (no smoothing scale). The
+    recurrence is the friction model's (`hdjax._friction.dahl_recurrence`). The state with
+    initial value $z_0$ is `z + z0 * decay`, decay $P_n = \\prod_{m \\le n} a_m$."""
+    vj, tj = jnp.asarray(v, dtype=float), jnp.asarray(t, dtype=float)
+    d = jnp.asarray(delta, dtype=float)
+
+    def one(dist, ve, te):
+        return dahl_recurrence(dist, ve, te, None, target=jnp.sign(ve), s0=0.0)[0]
+
+    z = jax.vmap(jax.vmap(one, in_axes=(None, 0, 0)), in_axes=(0, None, None))(d, vj, tj)
+    travel = jnp.cumsum(jnp.abs(vj) * jnp.diff(tj, axis=-1, prepend=tj[..., :1]), axis=-1)
+    P = jnp.exp(-travel[None] / d[:, None, None])
+    return np.asarray(z), np.asarray(P)
 
 
 @dataclasses.dataclass(eq=False)

@@ -99,16 +99,42 @@ def compliance_torque(
 
 
 def friction_basis(
-    velocity: ArrayLike, Tss2: ArrayLike, smoothing: Smoothing = Smoothing()
+    velocity: ArrayLike,
+    Tss2: ArrayLike,
+    smoothing: Smoothing = Smoothing(),
+    *,
+    direction: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> Float[Array, "... 6"]:
     """The six regressors of eq. 9 (columns: Tvp, Tvn, Tsp, Tsn, Tssp1, Tssn1), so that
-    `Tf = friction_basis(ω) @ [Tvp, Tvn, Tsp, Tsn, Tssp1, Tssn1]`."""
+    `Tf = friction_basis(ω) @ [Tvp, Tvn, Tsp, Tsn, Tssp1, Tssn1]`.
+
+    `direction` = (s, u), optional: a friction state $s \\in [-1, 1]$ and its direction switch
+    $u \\in [0, 1]$ that replace sign(ω) and u(ω) in the Coulomb and Stribeck columns (the
+    presliding Dahl state of friction-only fits); the viscous columns always switch on ω. This is
+    the one place eq. 9 is written: the plant, the paper regressions and the friction-only fits
+    all evaluate it here."""
     w = jnp.asarray(velocity)
     up = smooth_step(w, smoothing.velocity_scale)
     un = 1.0 - up
-    sg = smooth_sign(w, smoothing.velocity_scale)
+    if direction is None:
+        sg, us = smooth_sign(w, smoothing.velocity_scale), up
+    else:
+        sg, us = jnp.asarray(direction[0]), jnp.asarray(direction[1])
+    uns = 1.0 - us
     stribeck = jnp.exp(-((w / Tss2) ** 2))
-    return jnp.stack([w * up, w * un, sg * up, sg * un, sg * up * stribeck, sg * un * stribeck], axis=-1)
+    return jnp.stack([w * up, w * un, sg * us, sg * uns, sg * us * stribeck, sg * uns * stribeck], axis=-1)
+
+
+def friction_parts(
+    p, velocity: ArrayLike, smoothing: Smoothing = Smoothing(), *, direction: tuple[ArrayLike, ArrayLike] | None = None
+) -> tuple[Float[Array, "..."], Float[Array, "..."], Float[Array, "..."]]:
+    """Eq. 9 split into its (viscous, Coulomb, Stribeck) torques (N·m), for the extensions that
+    act on one part (thermal drift on the viscous, position-dependent friction on the Coulomb
+    part). `p` carries the eq. 9 fields (`Parameters` or `FrictionParameters`); `direction` as
+    in `friction_basis`."""
+    b = friction_basis(velocity, p.Tss2, smoothing, direction=direction)
+    return (b[..., 0] * p.Tvp + b[..., 1] * p.Tvn, b[..., 2] * p.Tsp + b[..., 3] * p.Tsn,
+            b[..., 4] * p.Tssp1 + b[..., 5] * p.Tssn1)
 
 
 def friction_torque(p: Parameters, velocity: ArrayLike, smoothing: Smoothing = Smoothing()) -> Float[Array, "..."]:

@@ -26,9 +26,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._effects import Effects, dahl_rate, stiffness_torque
+from ._effects import Effects, dahl_rate, stiffness_torque, thermal_factor
 from ._experiment import Experiment
-from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_basis
+from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_parts
 from ._sharding import (
     experiment_batching,
     experiment_mesh,
@@ -37,7 +37,7 @@ from ._sharding import (
     map_experiments,
     shard_experiments,
 )
-from ._smooth import smooth_signed_power
+from ._smooth import smooth_sign, smooth_signed_power
 from ._solver import Rodas3
 from ._stepper import VelocityImplicit, implicit_trajectory
 
@@ -182,16 +182,13 @@ class UniformLinearInput(eqx.Module):
 
 def _friction(p: Parameters, drive: Drive, wm, theta_m, T, t_session, effects: Effects, smoothing: Smoothing):
     """Eq. 9 with the friction extensions of `effects` (N·m)."""
-    basis = friction_basis(wm, p.Tss2, smoothing)
-    viscous = basis[..., 0] * p.Tvp + basis[..., 1] * p.Tvn
-    coulomb = basis[..., 2] * p.Tsp + basis[..., 3] * p.Tsn
-    stribeck = basis[..., 4] * p.Tssp1 + basis[..., 5] * p.Tssn1
+    viscous, coulomb, stribeck = friction_parts(p, wm, smoothing)
     if "thermal_drift" in effects.active:
-        viscous = viscous * (1.0 + effects.beta * jnp.exp(-t_session / jnp.abs(effects.tau)))
+        viscous = viscous * thermal_factor(effects.beta, effects.tau, t_session)
     if "position_dependent_friction" in effects.active:
         coulomb = coulomb * (1.0 + effects.periodic("position_dependent_friction", theta_m))
     if "load_dependent_friction" in effects.active:
-        sg = basis[..., 2] + basis[..., 3]
+        sg = smooth_sign(wm, smoothing.velocity_scale)
         coulomb = coulomb + effects.mu * jnp.sqrt(T * T + 1e-6) / drive.gear_ratio * sg
     return viscous + coulomb + stribeck
 
