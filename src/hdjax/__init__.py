@@ -31,7 +31,6 @@ from ._experiment import (
 from ._fit import (
     DEFAULT_FREE as DEFAULT_FREE,
     POSITIVE as POSITIVE,
-    ParameterMap as ParameterMap,
     experiment_residuals as experiment_residuals,
     fit_noise_levels as fit_noise_levels,
     fit_parameters as fit_parameters,
@@ -65,6 +64,7 @@ from ._model import (
     motor_acceleration as motor_acceleration,
 )
 from ._paper_id import identify_paper as identify_paper
+from ._parameterisation import Entry as Entry, Parameterisation as Parameterisation, parameterisation as parameterisation
 from ._plant import (
     Simulator as Simulator,
     Trajectory as Trajectory,

@@ -54,6 +54,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._effects import Effects
 from ._model import Drive, Parameters, Smoothing, _as_float, friction_torque
+from ._parameterisation import Entry, Parameterisation, parameterisation
 from ._plant import _low_speed_friction, _outputs, _vector_field
 from ._solver import Rodas3
 
@@ -487,18 +488,18 @@ class GainScaling(eqx.Module):
     ki0: float
     derivative_time: float
 
+    def parameterisation(self) -> Parameterisation:
+        """The map as a `Parameterisation` of `TorqueGains` (log slots relative to kp0, ki0, 1)."""
+        return parameterisation(
+            (Entry("kp", transform="log"), Entry("ki", transform="log"), Entry("kd"), Entry("kr"), Entry("kf"),
+             Entry("kj"), Entry("kpf", transform="log"), Entry("kif", transform="log"), Entry("kfr")),
+            np.array([self.kp0, self.ki0, self.kp0 * self.derivative_time, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]))  # fmt: skip
+
     def gains(self, theta: Float[Array, " 9"]) -> TorqueGains:
-        return TorqueGains(
-            kp=self.kp0 * jnp.exp(theta[0]), ki=self.ki0 * jnp.exp(theta[1]),
-            kd=self.kp0 * self.derivative_time * theta[2], kr=theta[3], kf=theta[4], kj=theta[5],
-            kpf=jnp.exp(theta[6]), kif=jnp.exp(theta[7]), kfr=theta[8],
-        )  # fmt: skip
+        return self.parameterisation().to_model(theta, TorqueGains(kp=0.0, ki=0.0))
 
     def theta(self, g: TorqueGains) -> Float[Array, " 9"]:
-        return jnp.stack([
-            jnp.log(g.kp / self.kp0), jnp.log(g.ki / self.ki0), g.kd / (self.kp0 * self.derivative_time), g.kr, g.kf,
-            g.kj, jnp.log(g.kpf), jnp.log(g.kif), g.kfr,
-        ])  # fmt: skip
+        return self.parameterisation().to_vector(g)
 
 
 def batch_cost(

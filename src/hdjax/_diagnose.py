@@ -89,7 +89,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Bool, Float
 from scipy import stats
 from scipy.signal import lfilter
 
@@ -97,7 +97,6 @@ from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PER
 from ._experiment import Experiment, stack_experiments
 from ._fit import (
     DEFAULT_FREE,
-    ParameterMap,
     experiment_residuals,
     fit_parameters,
     make_parameter_map,
@@ -106,6 +105,7 @@ from ._fit import (
     white_noise_level,
 )
 from ._model import Drive, Parameters
+from ._parameterisation import Entry, Parameterisation, parameterisation
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._sharding import experiment_mesh, for_each_experiment, map_experiments, pad_experiments
 
@@ -165,24 +165,20 @@ def _candidate_columns(cols: list[_Column], name: str, orders) -> list[int]:
     return [j for j, c in enumerate(cols) if c.effect == name and (c.index is None or c.index + 1 in orders)]
 
 
-def _apply(effects: Effects, cols: list[_Column], values, scales=None, starts=None) -> Effects:
-    """`effects` with every column of `cols` set to `start + scale·value` (traceable; `scales` and
-    `starts` default to the columns' own, pass arrays to keep them out of the compiled code)."""
-    values = jnp.asarray(values)
-    scales = jnp.asarray([c.scale for c in cols]) if scales is None else scales
-    starts = jnp.asarray([c.start for c in cols]) if starts is None else starts
-    x = starts + scales * values
-    updates = {}
-    j = 0
+def _effect_map(cols: list[_Column]) -> Parameterisation:
+    """The effect columns as a `Parameterisation` of `Effects`: every column's value is
+    `start + scale·z` (a periodic effect's orders are one array field)."""
+    entries, j = [], 0
     while j < len(cols):
         c = cols[j]
-        if c.index is None:
-            updates[c.field] = x[j]
-            j += 1
-        else:
-            updates[c.field] = x[j : j + MAX_ORDER]
-            j += MAX_ORDER
-    return dataclasses.replace(effects, **updates)
+        entries.append(Entry(c.field) if c.index is None else Entry(c.field, MAX_ORDER))
+        j += 1 if c.index is None else MAX_ORDER
+    return parameterisation(entries, np.array([c.scale for c in cols]), np.array([c.start for c in cols]))
+
+
+def _apply(effects: Effects, cols: list[_Column], values) -> Effects:
+    """`effects` with every column of `cols` set to `start + scale·value` (`_effect_map`)."""
+    return _effect_map(cols).to_model(jnp.asarray(values), effects)
 
 
 def _fixed_effect_settings(ctx: dict, active) -> Effects:
@@ -223,25 +219,23 @@ class _Problem(eqx.Module):
     padded with dummy experiments to a multiple of the device count and each device simulates its
     share; the dummies are dropped from every output."""
 
-    pmap: ParameterMap
-    cols: tuple = eqx.field(static=True)  # structure only: (effect, field, index) per column
-    scales: Float[Array, " column"]
-    starts: Float[Array, " column"]
+    pmap: Parameterisation  # the base parameters
+    emap: Parameterisation  # the effect columns (`_effect_map`)
     effects: Effects
     drive: Drive
     simulator: Simulator
     mesh: Mesh | None = eqx.field(static=True, default=None)
 
     def _one(self, z, p_ref, exp, sigma):
-        n = self.pmap.scale.shape[0]
-        p = self.pmap.to_params(z[:n], p_ref)
-        e = _apply(self.effects, list(self.cols), z[n:], self.scales, self.starts)
+        n = self.pmap.size
+        p = self.pmap.to_model(z[:n], p_ref)
+        e = self.emap.to_model(z[n:], self.effects)
         return experiment_residuals(p, self.drive, exp, sigma, self.simulator, e)
 
     def _traj(self, z, p_ref, exp):
-        n = self.pmap.scale.shape[0]
-        p = self.pmap.to_params(z[:n], p_ref)
-        e = _apply(self.effects, list(self.cols), z[n:], self.scales, self.starts)
+        n = self.pmap.size
+        p = self.pmap.to_model(z[:n], p_ref)
+        e = self.emap.to_model(z[n:], self.effects)
         return simulate(p, self.drive, exp, effects=e, simulator=self.simulator)
 
     def _each(self, fn, shared, batched):
@@ -903,12 +897,10 @@ def _setup(p_base: Parameters, drive: Drive, experiments: list[Experiment], batc
     modes = np.where(np.asarray(batch.free) > 0, "free", "constrained")
     ctx = _data_context(p_base, batch, sigma)
     cols = _all_columns(ctx)
-    prob = _Problem(pmap=pmap, cols=tuple(dataclasses.replace(c, scale=1.0, start=0.0) for c in cols),
-                    scales=jnp.asarray([c.scale for c in cols]), starts=jnp.asarray([c.start for c in cols]),
-                    effects=_fixed_effect_settings(ctx, effects), drive=drive,
+    prob = _Problem(pmap=pmap, emap=_effect_map(cols), effects=_fixed_effect_settings(ctx, effects), drive=drive,
                     simulator=simulator, mesh=experiment_mesh() if jax.device_count() > 1 else None)
     loose = dataclasses.replace(simulator, rtol=jacobian_rtol, atol=jacobian_rtol * 1e-2)
-    z0 = np.concatenate([np.asarray(pmap.to_theta(p_base)), np.zeros(len(cols))])
+    z0 = np.concatenate([np.asarray(pmap.to_vector(p_base)), np.zeros(len(cols))])
     t1 = time.perf_counter()
     traj = prob.trajectories(jnp.asarray(np.tile(z0, (n_exp, 1))), p_base, batch)
     timing["compile_and_base_simulation"] = time.perf_counter() - t1
@@ -1111,7 +1103,7 @@ def diagnose(
 
     # stage 6: the extended model, its description, traces for the figures, what is left
     z_cur = loop.z
-    current_p = pmap.to_params(jnp.asarray(z_cur[:n_base]), p_base)
+    current_p = pmap.to_model(jnp.asarray(z_cur[:n_base]), p_base)
     final_effects = _apply(_fixed_effect_settings(ctx, adopted + chosen + tb_found), cols, z_cur[n_base:])
     _describe_items(findings, form_items, final_effects, evidence, rounds, orders_of)
     # torque of the final base parameters without / with the effects (figures), and what is left

@@ -38,6 +38,7 @@ from ._effects import Effects
 from ._experiment import Experiment
 from ._model import PARAMETER_NAMES, Drive, Parameters
 from ._paper_id import _consistency
+from ._parameterisation import Entry, Parameterisation, parameterisation
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._progress import count_progress, lm_progress
 from ._sharding import experiment_mesh, for_each_experiment, map_experiments, replicated, shard_experiments
@@ -48,53 +49,31 @@ ALPHA_BOUNDS = (0.05, 1.5)
 DEFAULT_FREE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")
 
 
-class ParameterMap(eqx.Module):
-    """Map between physical `Parameters` and the unconstrained vector that LM works on."""
-
-    free: tuple[str, ...] = eqx.field(static=True)
-    scale: Float[Array, " free"]
-
-    def to_theta(self, p: Parameters) -> Float[Array, " free"]:
-        out = []
-        for k, s in zip(self.free, self.scale):
-            v = getattr(p, k)
-            if k in POSITIVE:
-                out.append(jnp.log(v))
-            elif k == "alpha":
-                lo, hi = ALPHA_BOUNDS
-                u = (v - lo) / (hi - lo)
-                out.append(jnp.log(u) - jnp.log1p(-u))
-            else:
-                out.append(v / s)
-        return jnp.stack(out)
-
-    def to_params(self, theta: Float[Array, " free"], base: Parameters) -> Parameters:
-        values = {}
-        for j, (k, s) in enumerate(zip(self.free, self.scale)):
-            t = theta[j]
-            if k in POSITIVE:
-                values[k] = jnp.exp(t)
-            elif k == "alpha":
-                lo, hi = ALPHA_BOUNDS
-                values[k] = lo + (hi - lo) * jax.nn.sigmoid(t)
-            else:
-                values[k] = t * s
-        return base.replace(**values)
-
-
-def make_parameter_map(p0: Parameters, free) -> ParameterMap:
+def make_parameter_map(p0: Parameters, free) -> Parameterisation:
+    """The paper parameters' `Parameterisation` for LM: positive parameters (`POSITIVE`) on a log
+    scale, α by a logit inside `ALPHA_BOUNDS`, the Stribeck amplitudes (signed) scaled by
+    max(|start|, 1e-3)."""
     free = tuple(free)
     unknown = [k for k in free if k not in PARAMETER_NAMES]
     if unknown:
         raise ValueError(f"`fit_parameters`: unknown parameter(s) {unknown} in `free`; choose from {list(PARAMETER_NAMES)}.")
+    entries, scale = [], []
     for k in free:
         v = float(getattr(p0, k))
-        if k in POSITIVE and not v > 0:
-            raise ValueError(f"`fit_parameters`: start value of {k} must be > 0 (it is fitted on a log scale), got {v}.")
-        if k == "alpha" and not ALPHA_BOUNDS[0] < v < ALPHA_BOUNDS[1]:
-            raise ValueError(f"`fit_parameters`: start value of alpha must lie in {ALPHA_BOUNDS}, got {v}.")
-    scale = jnp.array([max(abs(float(getattr(p0, k))), 1e-3) for k in free])
-    return ParameterMap(free=free, scale=scale)
+        if k in POSITIVE:
+            if not v > 0:
+                raise ValueError(f"`fit_parameters`: start value of {k} must be > 0 (it is fitted on a log scale), got {v}.")
+            entries.append(Entry(k, transform="log"))
+            scale.append(1.0)
+        elif k == "alpha":
+            if not ALPHA_BOUNDS[0] < v < ALPHA_BOUNDS[1]:
+                raise ValueError(f"`fit_parameters`: start value of alpha must lie in {ALPHA_BOUNDS}, got {v}.")
+            entries.append(Entry(k, transform="logit", bounds=ALPHA_BOUNDS))
+            scale.append(1.0)
+        else:
+            entries.append(Entry(k))
+            scale.append(max(abs(v), 1e-3))
+    return parameterisation(entries, np.asarray(scale))
 
 
 def white_noise_level(x: ArrayLike) -> float:
@@ -434,14 +413,14 @@ def fit_parameters(
     """
     pmap = make_parameter_map(p0, free)
     sigma = fit_noise_levels(p0, drive, batch, simulator=simulator) if sigma is None else jnp.asarray(sigma)
-    theta0 = pmap.to_theta(p0)
+    theta0 = pmap.to_vector(p0)
     # several devices: split the experiment axis over all of them (masked dummies pad the batch)
     mesh = experiment_mesh() if jax.device_count() > 1 else None
     n_exp = int(batch.time.shape[0])  # the real experiments (the progress line counts no dummies)
     if mesh is not None:
         batch, _ = shard_experiments(batch, mesh)
     with lm_progress(f"LM fit ({len(free)} parameters, {n_exp} experiments)", max_steps) as callback:
-        run = _cached(_joint_fit_program, pmap.free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh,
+        run = _cached(_joint_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh,
                       callback is not None)
         with _relayed("lm", callback):
             theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (pmap, p0, drive, batch, sigma)))
@@ -456,12 +435,12 @@ def fit_parameters(
     chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))
     cov_theta = _covariance(J, chi2)
     # delta method: d p / d theta
-    dp = np.asarray(jax.jacfwd(lambda t: jnp.stack([getattr(pmap.to_params(t, p0), k) for k in free]))(jnp.asarray(theta)))
+    dp = np.asarray(jax.jacfwd(lambda t: jnp.stack([getattr(pmap.to_model(t, p0), k) for k in free]))(jnp.asarray(theta)))
     cov = dp @ cov_theta @ dp.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
-    params = pmap.to_params(jnp.asarray(theta), p0)
+    params = pmap.to_model(jnp.asarray(theta), p0)
     return TrajectoryFit(
         params=params,
         free=tuple(free),
@@ -537,11 +516,11 @@ def fit_per_experiment(
     """
     pmap = make_parameter_map(p0, free)
     sigma = fit_noise_levels(p0, drive, batch, simulator=simulator) if sigma is None else jnp.asarray(sigma)
-    theta0 = pmap.to_theta(p0)
+    theta0 = pmap.to_vector(p0)
     mask = np.asarray(mask, dtype=bool)
     n_exp = int(batch.time.shape[0])
-    if mask.shape != (n_exp, len(pmap.free)):
-        raise ValueError(f"`fit_per_experiment`: mask has shape {mask.shape}, expected ({n_exp}, {len(pmap.free)}).")
+    if mask.shape != (n_exp, len(pmap.fields)):
+        raise ValueError(f"`fit_per_experiment`: mask has shape {mask.shape}, expected ({n_exp}, {len(pmap.fields)}).")
     # slots: experiment e fits z[e, s] for parameter slot_index[e, s] where slot_on[e, s]
     n_slots = max(1, int(mask.sum(axis=1).max()))
     slot_index = np.zeros((n_exp, n_slots), dtype=int)
@@ -554,7 +533,7 @@ def fit_per_experiment(
     active = mask.any(axis=1)
     idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
     with count_progress("per-experiment LM fits", n_exp, unit="experiments") as done:
-        run = _cached(_per_experiment_fit_program, pmap.free, simulator, solver, max_steps, step_se_tol, cost_rtol,
+        run = _cached(_per_experiment_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol,
                       done is not None)
         with _relayed("count", done):
             z_final, result, reason, steps, r = jax.block_until_ready(
@@ -565,13 +544,13 @@ def fit_per_experiment(
     rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
     values = np.full(mask.shape, np.nan)
     for e in np.flatnonzero(ok):
-        p = pmap.to_params(_full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
-        for k, name in enumerate(pmap.free):
+        p = pmap.to_model(_full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
+        for k, name in enumerate(pmap.fields):
             if mask[e, k]:
                 values[e, k] = float(getattr(p, name))
     dof = np.maximum(n_obs - mask.sum(axis=1), 1)
     return PerExperimentFit(
-        free=pmap.free,
+        free=pmap.fields,
         mask=mask,
         values=values,
         converged=ok,
@@ -630,7 +609,7 @@ def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rto
 
     def residuals(theta, args):
         pmap, p0_, drive_, batch_, sigma_ = args
-        p = pmap.to_params(theta, p0_)
+        p = pmap.to_model(theta, p0_)
 
         def per_experiment(shared, b):
             p_, d_, s_ = shared
@@ -668,7 +647,7 @@ def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol,
 
     def residuals(z, args):
         pmap, theta0_, p0_, drive_, exp, sigma_, idx, on = args
-        p = pmap.to_params(_full_theta(z, theta0_, idx, on), p0_)
+        p = pmap.to_model(_full_theta(z, theta0_, idx, on), p0_)
         return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
 
     residuals_lm = _lm_objective(residuals)

@@ -10,15 +10,9 @@ import numpy as np
 
 from ._data import Dataset
 from ._friction import FRICTION_NAMES, FRICTION_UNITS, MAX_ORDERS, amplitude_phase
-from ._friction_diag import _add, _Fold, diagnose_friction
+from ._friction_diag import _add, _Fold, diagnose_friction, fold_params
 from ._friction_fit import (
-    I_BETA,
-    I_LDELTA,
-    I_LTAU,
-    I_RC,
-    I_RS,
-    I_TC,
-    I_TS,
+    HARMONIC_FIELDS,
     TIE_NEG_TO_POS,
     TIE_POS_TO_NEG,
     FrictionProblem,
@@ -331,23 +325,23 @@ def _fit_report(dataset, doc, figs) -> str:
 
 
 def _finding_params(problem: FrictionProblem, fold: _Fold, effect: str) -> dict:
-    x, st = fold.x, fold.structure
-    scale = np.asarray(problem.scale)
-    if effect in ("position_dependent_friction", "position_dependent_torque"):
+    st = fold.structure
+    p = fold_params(problem, fold)
+    if effect in HARMONIC_FIELDS:
         orders = np.asarray(st.ripple_orders if effect == "position_dependent_friction" else st.torque_orders)
-        ss, cc = (I_RS, I_RC) if effect == "position_dependent_friction" else (I_TS, I_TC)
+        sin_coef, cos_coef = (np.asarray(getattr(p, k)) for k in HARMONIC_FIELDS[effect])
         key = "epsilon" if effect == "position_dependent_friction" else "b"
         out = {}
         for j in range(MAX_ORDERS):
             if orders[j] > 0:
-                a, ph = amplitude_phase(x[ss][j] * scale[ss][j], x[cc][j] * scale[cc][j])
+                a, ph = amplitude_phase(sin_coef[j], cos_coef[j])
                 k = int(orders[j])
                 out[f"{key}{k}"], out[f"phi{k}"] = a, ph
         return out
     if effect == "presliding_friction":
-        return {"presliding_distance": float(np.exp(x[I_LDELTA]))}
+        return {"presliding_distance": float(p.presliding_distance)}
     if effect == "thermal_drift":
-        return {"beta": float(x[I_BETA] * scale[I_BETA]), "tau": float(np.exp(x[I_LTAU]))}
+        return {"beta": float(p.thermal_beta), "tau": float(p.thermal_tau)}
     return {}
 
 
@@ -422,7 +416,7 @@ def friction_diagnosis_doc(problem: FrictionProblem, dataset_name: str, *, min_g
                              "rule": "significant when the pooled held-out RMS falls by at least min_gain and the "
                                      "held-out error falls in every fold (all but one with 5 or more folds)"},
         "rounds": d.rounds,
-        "extended_model": {"eq9": {k: float(getattr(problem_params_of(problem, fold), k)) for k in FRICTION_NAMES},
+        "extended_model": {"eq9": {k: float(getattr(fold_params(problem, fold), k)) for k in FRICTION_NAMES},
                            "effects": ext_params,
                            "heldout_nrmse": {"friction_torque": d.final.nrmse}, "heldout_rms": d.final.rms,
                            "heldout_rms_lowpass_1hz": _lp(problem, d.final.heldout)},
@@ -446,14 +440,6 @@ def _span_note(fold, effect, span) -> str:
         return ""
     return (f" Orders {long} have periods longer than the recorded angle range ({span:.3g} rad): there the term is "
             "a smooth function of angle, not a resolved harmonic, and its amplitude and phase are not physical.")
-
-
-def problem_params_of(problem, fold):
-    import jax.numpy as jnp
-
-    from ._friction_fit import vector_to_params
-
-    return vector_to_params(jnp.asarray(fold.x), problem.scale, fold.tie)
 
 
 def run_diagnose(dataset: Dataset, config: dict, out, *, log=print) -> dict:

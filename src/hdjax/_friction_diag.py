@@ -20,21 +20,15 @@ linearly with the state replacing sign), a grid of time constants for thermal dr
 
 import dataclasses
 import math
-import types
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._friction import FRICTION_NAMES, MAX_ORDERS, STATE_SCALE, FrictionStructure, presliding_state
+from ._friction import MAX_ORDERS, STATE_SCALE, FrictionParameters, FrictionStructure, presliding_state
 from ._friction_fit import (
-    I_BETA,
-    I_LDELTA,
-    I_LTAU,
-    I_RC,
-    I_RS,
-    I_TC,
-    I_TS,
+    HARMONIC_FIELDS,
+    SLOT,
     FrictionProblem,
     RowFit,
     Rows,
@@ -170,11 +164,9 @@ def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: 
     v = problem.v[:, idx]
     scale = np.asarray(problem.scale)
     if name in ("position_dependent_friction", "position_dependent_torque"):
-        p = problem_params(problem, fold)
+        p = fold_params(problem, fold)
         if name == "position_dependent_friction":
-            sg = np.tanh(v / problem.smoothing.velocity_scale)
-            up = 0.5 * (1 + sg)
-            g = (p.Tsp * up + p.Tsn * (1 - up)) * sg
+            g = np.asarray(friction_parts(p, v, problem.smoothing)[1])  # the Coulomb part it modulates
         else:
             g = np.ones_like(v)
         orders, coef = choose_orders(problem, theta, r, g, on, max_order=max_order)
@@ -182,7 +174,7 @@ def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: 
             orders, coef = [1], _lstsq_gain(np.stack([g[on] * np.sin(theta[on]), g[on] * np.cos(theta[on])], 1), r[on])[0]
         o = np.zeros(MAX_ORDERS)
         o[: len(orders)] = orders
-        sl_s, sl_c = (I_RS, I_RC) if name == "position_dependent_friction" else (I_TS, I_TC)
+        sl_s, sl_c = (SLOT[k] for k in HARMONIC_FIELDS[name])
         cs, cc = np.zeros(MAX_ORDERS), np.zeros(MAX_ORDERS)
         cs[: len(orders)], cc[: len(orders)] = coef[0::2], coef[1::2]
         x[sl_s], x[sl_c] = cs / scale[sl_s], cc / scale[sl_c]
@@ -193,29 +185,27 @@ def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: 
             st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=o, presliding=st.presliding,
                                    thermal=st.thermal)
     elif name == "presliding_friction":
-        x[I_LDELTA] = np.log(_start_delta(problem, fold, w))
-        free[I_LDELTA] = True
+        x[SLOT["presliding_distance"]] = np.log(_start_delta(problem, fold, w))
+        free[SLOT["presliding_distance"]] = True
         st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=st.torque_orders, presliding=1.0,
                                thermal=st.thermal)
     elif name == "thermal_drift":
         beta, tau = _start_thermal(problem, fold, r, on, idx)
-        x[I_BETA], x[I_LTAU] = beta / scale[I_BETA], np.log(tau)
-        free[I_BETA] = free[I_LTAU] = True
+        x[SLOT["thermal_beta"]], x[SLOT["thermal_tau"]] = beta / scale[SLOT["thermal_beta"]], np.log(tau)
+        free[SLOT["thermal_beta"]] = free[SLOT["thermal_tau"]] = True
         st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=st.torque_orders,
                                presliding=st.presliding, thermal=1.0)
     return _Fold(x, fold.tie, free, st)
 
 
-def problem_params(problem: FrictionProblem, fold: _Fold) -> types.SimpleNamespace:
-    """The fold's parameters as Python floats (attribute access, for numpy start values)."""
-    p = vector_to_params(jnp.asarray(fold.x), problem.scale, fold.tie)
-    names = FRICTION_NAMES + ("thermal_beta", "thermal_tau", "presliding_distance")
-    return types.SimpleNamespace(**{k: float(getattr(p, k)) for k in names})
+def fold_params(problem: FrictionProblem, fold: _Fold) -> FrictionParameters:
+    """The fold's fitted parameters (its vector through the problem's parameterisation and tie)."""
+    return vector_to_params(jnp.asarray(fold.x), problem.pmap, fold.tie)
 
 
 def _start_delta(problem: FrictionProblem, fold: _Fold, w: np.ndarray) -> float:
     """Presliding distance (rad) from a grid: Dahl state replacing sign, eq. 9 refitted linearly."""
-    p = problem_params(problem, fold)
+    p = fold_params(problem, fold)
     v, t = problem.v, np.asarray(problem.data.time)
     idx = np.asarray(problem.index)
     on = ((w > 0) & problem.mask)[:, idx]
@@ -239,7 +229,7 @@ def _start_delta(problem: FrictionProblem, fold: _Fold, w: np.ndarray) -> float:
 
 def _start_thermal(problem: FrictionProblem, fold: _Fold, r, on, idx) -> tuple[float, float]:
     """(beta, tau): viscous part × exp(−t_session/τ) regressed on the residual over a τ grid."""
-    p = problem_params(problem, fold)
+    p = fold_params(problem, fold)
     v = problem.v[:, idx]
     ts = (np.asarray(problem.data.start_time)[:, None] + np.asarray(problem.data.time))[:, idx]
     visc = np.asarray(friction_parts(p, v, problem.smoothing)[0])

@@ -45,18 +45,25 @@ from ._friction import (
 )
 from ._lm import MarquardtLM
 from ._model import Smoothing, friction_basis
+from ._parameterisation import Entry, Parameterisation, parameterisation, slots, vector_size
 
 M = MAX_ORDERS
-I_TVP, I_TVN, I_TSP, I_TSN, I_TSSP1, I_TSSN1, I_LTSS2 = range(7)
-I_RS = slice(7, 7 + M)
-I_RC = slice(7 + M, 7 + 2 * M)
-I_TS = slice(7 + 2 * M, 7 + 3 * M)
-I_TC = slice(7 + 3 * M, 7 + 4 * M)
-I_LDELTA = 7 + 4 * M
-I_BETA = I_LDELTA + 1
-I_LTAU = I_LDELTA + 2
-N_PARAMS = I_LTAU + 1
-LOG_INDICES = (I_LTSS2, I_LDELTA, I_LTAU)
+#: The fit's vector: eq. 9 (torques scaled, Tss2 on a log scale), the harmonic slots of the two
+#: position extensions (scaled), the presliding distance and thermal τ (log), thermal β (scaled).
+FRICTION_ENTRIES = (
+    Entry("Tvp"), Entry("Tvn"), Entry("Tsp"), Entry("Tsn"), Entry("Tssp1"), Entry("Tssn1"),
+    Entry("Tss2", transform="log"),
+    Entry("ripple_sin", M), Entry("ripple_cos", M), Entry("torque_sin", M), Entry("torque_cos", M),
+    Entry("presliding_distance", transform="log"), Entry("thermal_beta"), Entry("thermal_tau", transform="log"),
+)  # fmt: skip
+SLOT = slots(FRICTION_ENTRIES)  # vector index / slice of each field
+IDX = {k: v for k, v in SLOT.items() if isinstance(v, int)}  # the scalar fields' indices
+N_PARAMS = vector_size(FRICTION_ENTRIES)
+LOG_INDICES = [IDX[e.field] for e in FRICTION_ENTRIES if e.transform == "log"]
+#: The (sin, cos) coefficient fields of each periodic extension.
+HARMONIC_FIELDS = {"position_dependent_friction": ("ripple_sin", "ripple_cos"),
+                   "position_dependent_torque": ("torque_sin", "torque_cos")}
+EQ9_SLOTS = [IDX[k] for k in FRICTION_NAMES]  # the eq. 9 part of the vector, in `FRICTION_NAMES` order
 MIN_DIRECTION_SAMPLES = 50
 DENSE_BELOW = 10.0  # velocity scales below which every sample enters the fit (`FrictionProblem.index`)
 MIN_DIRECTION_FRACTION = 0.02
@@ -87,40 +94,21 @@ def stack_friction(experiments: list[FrictionExperiment]) -> FrictionExperiment:
     )
 
 
-def vector_to_params(x, scale, tie) -> FrictionParameters:
-    """Normalised vector (`N_PARAMS`,) to `FrictionParameters`, applying a direction tie."""
-    v = x * scale
-    tvp, tvn, tsp, tsn, a1, b1 = (v[i] for i in (I_TVP, I_TVN, I_TSP, I_TSN, I_TSSP1, I_TSSN1))
+def _tied(p: FrictionParameters, tie) -> FrictionParameters:
+    """`p` with one direction's eq. 9 parameters copied from the other (`TIE_NEG_TO_POS`: the
+    negative direction takes the positive one's; `TIE_POS_TO_NEG`: the reverse)."""
     neg, pos = tie == TIE_NEG_TO_POS, tie == TIE_POS_TO_NEG
-    return FrictionParameters(
-        Tvp=jnp.where(pos, tvn, tvp),
-        Tvn=jnp.where(neg, tvp, tvn),
-        Tsp=jnp.where(pos, tsn, tsp),
-        Tsn=jnp.where(neg, tsp, tsn),
-        Tssp1=jnp.where(pos, b1, a1),
-        Tssn1=jnp.where(neg, a1, b1),
-        Tss2=jnp.exp(x[I_LTSS2]),
-        ripple_sin=v[I_RS],
-        ripple_cos=v[I_RC],
-        torque_sin=v[I_TS],
-        torque_cos=v[I_TC],
-        presliding_distance=jnp.exp(x[I_LDELTA]),
-        thermal_beta=v[I_BETA],
-        thermal_tau=jnp.exp(x[I_LTAU]),
-    )
+    return eqx.tree_at(
+        lambda q: (q.Tvp, q.Tvn, q.Tsp, q.Tsn, q.Tssp1, q.Tssn1), p,
+        (jnp.where(pos, p.Tvn, p.Tvp), jnp.where(neg, p.Tvp, p.Tvn), jnp.where(pos, p.Tsn, p.Tsp),
+         jnp.where(neg, p.Tsp, p.Tsn), jnp.where(pos, p.Tssn1, p.Tssp1), jnp.where(neg, p.Tssp1, p.Tssn1)))  # fmt: skip
 
 
-def params_to_vector(p: FrictionParameters, scale) -> np.ndarray:
-    """Inverse of `vector_to_params` (without a tie)."""
-    x = np.zeros(N_PARAMS)
-    for i, k in zip((I_TVP, I_TVN, I_TSP, I_TSN, I_TSSP1, I_TSSN1), FRICTION_NAMES):
-        x[i] = float(getattr(p, k))
-    x[I_RS], x[I_RC] = np.asarray(p.ripple_sin), np.asarray(p.ripple_cos)
-    x[I_TS], x[I_TC] = np.asarray(p.torque_sin), np.asarray(p.torque_cos)
-    x[I_BETA] = float(p.thermal_beta)
-    x = x / np.asarray(scale)
-    x[I_LTSS2], x[I_LDELTA], x[I_LTAU] = (np.log(float(v)) for v in (p.Tss2, p.presliding_distance, p.thermal_tau))
-    return x
+def vector_to_params(x, pmap: Parameterisation, tie) -> FrictionParameters:
+    """Normalised vector (`N_PARAMS`,) to `FrictionParameters` through the problem's
+    parameterisation, applying a direction tie."""
+    base = FrictionParameters(**dict.fromkeys(FRICTION_NAMES, 0.0))  # every field is replaced
+    return _tied(pmap.to_model(x, base), tie)
 
 
 def predict(p: FrictionParameters, structure: FrictionStructure, data: FrictionExperiment, smoothing: Smoothing,
@@ -135,14 +123,14 @@ def predict(p: FrictionParameters, structure: FrictionStructure, data: FrictionE
     return jax.vmap(one)(data.velocity, data.time, data.position, data.has_position, data.start_time)
 
 
-def _residual(x, x0, free, w, tie, data, structure, scale, sigma, smoothing, index):
-    p = vector_to_params(jnp.where(free, x, x0), scale, tie)
+def _residual(x, x0, free, w, tie, data, structure, pmap, sigma, smoothing, index):
+    p = vector_to_params(jnp.where(free, x, x0), pmap, tie)
     pred = predict(p, structure, data, smoothing, at=index)
     return (jnp.sqrt(w[:, index]) * (pred - data.friction_torque[:, index]) / sigma).ravel()
 
 
 @eqx.filter_jit
-def _solve(x0, free, w, tie, data, structure, scale, sigma, smoothing, index, max_steps):
+def _solve(x0, free, w, tie, data, structure, pmap, sigma, smoothing, index, max_steps):
     """One row's fit: `optx.least_squares` with `MarquardtLM` (`hdjax._lm`: Marquardt-scaled
     normal equations, a materialised forward-mode Jacobian, one model evaluation per step), which
     on these small problems is far cheaper per step than `optimistix.LevenbergMarquardt` (a
@@ -154,7 +142,7 @@ def _solve(x0, free, w, tie, data, structure, scale, sigma, smoothing, index, ma
     every row for as long as the slowest."""
 
     def residuals(x, args):
-        return _residual(x, x0, free, w, tie, data, structure, scale, sigma, smoothing, index)
+        return _residual(x, x0, free, w, tie, data, structure, pmap, sigma, smoothing, index)
 
     sol = optx.least_squares(residuals, MarquardtLM(rtol=RTOL, atol=ATOL, xtol=XTOL), x0, None,
                              max_steps=max_steps, throw=False)
@@ -162,13 +150,13 @@ def _solve(x0, free, w, tie, data, structure, scale, sigma, smoothing, index, ma
 
 
 @eqx.filter_jit
-def _predict_row(x, tie, data, structure, scale, smoothing):
-    return predict(vector_to_params(x, scale, tie), structure, data, smoothing)
+def _predict_row(x, tie, data, structure, pmap, smoothing):
+    return predict(vector_to_params(x, pmap, tie), structure, data, smoothing)
 
 
 @eqx.filter_jit
-def _jacobian(x, free, w, tie, data, structure, scale, sigma, smoothing, index):
-    return jax.jacfwd(lambda x: _residual(x, x, free, w, tie, data, structure, scale, sigma, smoothing, index))(x)
+def _jacobian(x, free, w, tie, data, structure, pmap, sigma, smoothing, index):
+    return jax.jacfwd(lambda x: _residual(x, x, free, w, tie, data, structure, pmap, sigma, smoothing, index))(x)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -195,7 +183,7 @@ class RowFit:
     structures: list
 
     def params(self, b: int, problem: "FrictionProblem") -> FrictionParameters:
-        return vector_to_params(jnp.asarray(self.x[b]), problem.scale, self.tie[b])
+        return vector_to_params(jnp.asarray(self.x[b]), problem.pmap, self.tie[b])
 
 
 @dataclasses.dataclass(eq=False)
@@ -241,12 +229,13 @@ class FrictionProblem:
             raise ValueError(f"`FrictionProblem` ({', '.join(self.files)}): every velocity is zero; eq. 9 needs motion.")
         self.sigma = jnp.asarray(ts if ts > 0 else 1.0)  # an array: a Python float would be static under jit
         scale = np.ones(N_PARAMS)
-        scale[[I_TVP, I_TVN]] = self.sigma / vs
-        scale[[I_TSP, I_TSN, I_TSSP1, I_TSSN1]] = self.sigma
-        scale[I_RS], scale[I_RC] = 0.1, 0.1
-        scale[I_TS], scale[I_TC] = self.sigma, self.sigma
-        scale[list(LOG_INDICES)] = 1.0
-        self.scale = jnp.asarray(scale)
+        for k in ("Tvp", "Tvn"):
+            scale[SLOT[k]] = self.sigma / vs
+        for k in ("Tsp", "Tsn", "Tssp1", "Tssn1", "torque_sin", "torque_cos"):
+            scale[SLOT[k]] = self.sigma
+        scale[SLOT["ripple_sin"]], scale[SLOT["ripple_cos"]] = 0.1, 0.1
+        self.pmap = parameterisation(FRICTION_ENTRIES, scale)  # log slots keep scale 1: value = exp(x)
+        self.scale = self.pmap.scale
         self.E, self.N = self.mask.shape
         self.fs = sample_rates(self.data)
         self.stride = max(1, -(-self.E * self.N // int(self.max_fit_samples)))
@@ -326,13 +315,13 @@ class FrictionProblem:
 
     def base_free(self, tie: int | np.integer) -> np.ndarray:
         free = np.zeros(N_PARAMS, bool)
-        free[:7] = True
+        free[EQ9_SLOTS] = True
         if tie == TIE_NEG_TO_POS:
-            free[[I_TVN, I_TSN, I_TSSN1]] = False
+            free[[IDX["Tvn"], IDX["Tsn"], IDX["Tssn1"]]] = False
         elif tie == TIE_POS_TO_NEG:
-            free[[I_TVP, I_TSP, I_TSSP1]] = False
+            free[[IDX["Tvp"], IDX["Tsp"], IDX["Tssp1"]]] = False
         if self.Tss2 is not None:
-            free[I_LTSS2] = False
+            free[SLOT["Tss2"]] = False
         return free
 
     # ---------------------------------------------------------------- eq. 9 start values
@@ -364,9 +353,10 @@ class FrictionProblem:
                 coef = np.repeat(c, 2) if tie != TIE_NONE else c
                 best, x_best = sse, np.concatenate([coef, [np.log(tss2)]])
         x = np.zeros(N_PARAMS)
-        x[:7] = x_best
-        x[:6] /= np.asarray(self.scale)[:6]
-        x[I_LDELTA], x[I_LTAU] = np.log(1e-3), np.log(THERMAL_TAU)
+        eq9 = EQ9_SLOTS
+        x[eq9] = x_best  # six torques, then ln Tss2 (`FRICTION_NAMES` order)
+        x[eq9[:6]] /= np.asarray(self.scale)[eq9[:6]]
+        x[SLOT["presliding_distance"]], x[SLOT["thermal_tau"]] = np.log(1e-3), np.log(THERMAL_TAU)
         return x
 
     # ---------------------------------------------------------------- fitting
@@ -380,7 +370,7 @@ class FrictionProblem:
                 xs.append(xs[0]), oks.append(oks[0]), steps.append(0), preds.append(preds[0])
                 continue
             x, ok, n = _solve(jnp.asarray(x0[b]), jnp.asarray(free[b]), jnp.asarray(rows.train[b] * self.sample_weight),
-                              jnp.asarray(tie[b]), self.data, structures[b], self.scale, self.sigma, self.smoothing,
+                              jnp.asarray(tie[b]), self.data, structures[b], self.pmap, self.sigma, self.smoothing,
                               self.index, self.max_steps)
             x, pred = np.asarray(x), self.predict_row(np.asarray(x), int(tie[b]), structures[b])
             # the fit sees a subsample: keep the start if the result's squared error, summed over all
@@ -399,7 +389,7 @@ class FrictionProblem:
 
     def predict_row(self, x: np.ndarray, tie: int | np.integer, structure: FrictionStructure) -> np.ndarray:
         """Model torque (N·m) of one normalised vector on every sample, shape (experiment, time)."""
-        return np.asarray(_predict_row(jnp.asarray(x), jnp.asarray(tie), self.data, structure, self.scale,
+        return np.asarray(_predict_row(jnp.asarray(x), jnp.asarray(tie), self.data, structure, self.pmap,
                                        self.smoothing))
 
     def fit_eq9(self, rows: Rows) -> RowFit:
@@ -414,7 +404,7 @@ class FrictionProblem:
         residuals (see the module docstring); NaN for parameters not fitted."""
         w = rows.train[b]
         J = np.asarray(_jacobian(jnp.asarray(fit.x[b]), jnp.asarray(fit.free[b]), jnp.asarray(w),
-                                 jnp.asarray(fit.tie[b]), self.data, fit.structures[b], self.scale, self.sigma,
+                                 jnp.asarray(fit.tie[b]), self.data, fit.structures[b], self.pmap, self.sigma,
                                  self.smoothing, self.index))
         free = fit.free[b]
         Jf = J[:, free]

@@ -37,6 +37,7 @@ from ._experiment import Experiment, select_experiments, stack_experiments, take
 from ._fit import CHANNELS, DEFAULT_FREE, noise_levels
 from ._io import atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
+from ._parameterisation import Entry, Parameterisation
 from ._plant import Simulator, Trajectory, is_fixed_cost, simulate
 from ._sharding import for_each_experiment
 
@@ -96,7 +97,10 @@ _AGREE_FACTOR = 3.0
 def scaled_parameters(p: Parameters, s: jax.Array) -> Parameters:
     """`p` with every parameter multiplied by `exp(s_k)` (order `PARAMETER_NAMES`), so that a
     derivative with respect to `s_k` at 0 is one with respect to `ln|p_k|`."""
-    return p.replace(**{k: getattr(p, k) * jnp.exp(s[j]) for j, k in enumerate(PARAMETER_NAMES)})
+    relative = Parameterisation(entries=tuple(Entry(k, transform="log") for k in PARAMETER_NAMES),
+                                scale=jnp.stack([getattr(p, k) for k in PARAMETER_NAMES]),
+                                offset=jnp.zeros(len(PARAMETER_NAMES)))
+    return relative.to_model(s, p)
 
 
 class Sensitivities(eqx.Module):
