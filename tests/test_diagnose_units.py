@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from hdjax._diagnose import Significance, _judge, _solve_normal
+from hdjax._diagnose import _judge, _solve_normal
+from hdjax._significance import Significance
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -68,3 +69,14 @@ def test_significance_needs_both_halves_and_the_effect_size():
     before, after = _residuals([0.03] * 4 + [0.0] * 4)  # below min_relative_gain = 5 %
     s = _judge(before, after, FOLDS, MODES, 2, Significance())
     assert not s["significant"] and _judge(before, after, FOLDS, MODES, 2, Significance(min_relative_gain=0.01))["significant"]
+
+
+def test_friction_rules_need_every_fold_up_to_four_and_all_but_one_of_five():
+    """The friction-only diagnosis's fold rule, as one value of the shared `Significance` type."""
+    from hdjax._significance import FRICTION_RULES, OUTPUT_ERROR_RULES
+
+    for folds in range(1, 6):
+        for improved in range(folds + 1):
+            need = folds if folds < 5 else folds - 1
+            assert FRICTION_RULES.consistent(improved / folds) == (improved >= need), (folds, improved)
+    assert OUTPUT_ERROR_RULES == Significance() and FRICTION_RULES.min_relative_gain == 0.01

@@ -108,13 +108,7 @@ from ._model import Drive, Parameters
 from ._parameterisation import Entry, Parameterisation, parameterisation
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._sharding import experiment_mesh, for_each_experiment, map_experiments, pad_experiments
-
-#: A finding may make one kind of test (locked or free) worse by at most this share of the held-out
-#: Δχ² it gains on the other (and at most the chance level when that is larger). A true order-2
-#: kinematic error on the independent bench gained 26 % on the free tests and cost 4 % on the locked
-#: ones, whose misfit is dominated by the bench's stick–slip; with "no worse than chance" it was not
-#: named. A term fitted to one kind of test at the other's expense loses far more than this.
-MODE_TRADE = 0.25
+from ._significance import OUTPUT_ERROR_RULES, Significance
 
 
 @dataclasses.dataclass(frozen=True)
@@ -358,26 +352,6 @@ def _gn_step(r: np.ndarray, J: np.ndarray, rows, cols_idx) -> np.ndarray:
     return _solve_normal(JJ.T @ JJ, JJ.T @ rr)
 
 
-@dataclasses.dataclass(frozen=True)
-class Significance:
-    """The rules a candidate's simulated held-out gain must pass to be named (module docstring, step 5).
-
-    **Fields:** `min_relative_gain` reduction of the whitened held-out squared error in the locked or
-    the free tests (where the effect acts); `min_improved_fraction` share of held-out experiments of
-    that mode that must improve; the chance level of a fit with k parameters is
-    `chance_per_parameter`·k + `chance_offset` (in Δχ²), which the held-out gain must exceed, also
-    without the experiment that gains most; `mode_trade` (`MODE_TRADE`) how much of its gain on one
-    kind of test a candidate may lose on the other."""
-
-    min_relative_gain: float = 0.05
-    min_improved_fraction: float = 0.75
-    chance_per_parameter: float = 10.0
-    chance_offset: float = 50.0
-    mode_trade: float = MODE_TRADE
-
-    def chance(self, k: int) -> float:
-        """Δχ² a fit of `k` parameters gains by chance (sensor-noise units)."""
-        return self.chance_per_parameter * k + self.chance_offset
 
 
 @dataclasses.dataclass
@@ -771,7 +745,7 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     significant = bool(np.all(sse_after < sse_before) and max(mode_gains.values()) > rule.min_relative_gain
                        and dchi > chance and dchi_rest > chance
                        and min(mode_dchi.values()) > -max(chance, rule.mode_trade * max(mode_dchi.values()))
-                       and improved >= rule.min_improved_fraction)
+                       and rule.consistent(improved))
     return dict(simulated=True, gain=float(gain), fold_gains=(1 - sse_after / sse_before).tolist(), delta_chi2=dchi,
                 delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
                 harm_ratio=harm, per_experiment_gain=(d / e_before).tolist(),
@@ -1003,13 +977,13 @@ def diagnose(
     base_free=DEFAULT_FREE,
     base_steps: int = 5,
     max_findings: int = 3,
-    min_relative_gain: float = 0.05,
+    min_relative_gain: float = OUTPUT_ERROR_RULES.min_relative_gain,
     refine_steps: int = 4,
     refine_jacobians: int = 3,
     confirm_top: int = 2,
     per_record_noise: bool = True,
     misfit_scaling: bool = True,
-    min_improved_fraction: float = 0.75,
+    min_improved_fraction: float = OUTPUT_ERROR_RULES.min_improved_fraction,
     reuse_jacobian: bool = True,
     simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8),
     jacobian_rtol: float = 1e-5,
@@ -1051,7 +1025,8 @@ def diagnose(
     t0 = time.perf_counter()
     candidates, model_form = _check_names(candidates, model_form, cross_validation)
     requested = set(candidates)
-    rule = Significance(min_relative_gain=min_relative_gain, min_improved_fraction=min_improved_fraction)
+    rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
+                               min_improved_fraction=min_improved_fraction)
     batch = stack_experiments(experiments)
     n_exp = len(experiments)
     sigma = noise_levels(batch)

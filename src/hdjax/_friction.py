@@ -45,12 +45,16 @@ from ._smooth import smooth_sign, smooth_step
 FRICTION_NAMES = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")
 FRICTION_UNITS = {k: PARAMETER_UNITS[k] for k in FRICTION_NAMES}
 EXTENSION_NAMES = ("position_dependent_friction", "position_dependent_torque", "presliding_friction", "thermal_drift")
-MAX_ORDERS = 3  # harmonic slots per periodic extension
+#: Harmonic slots per periodic extension of a friction-only fit. Each slot holds a chosen order
+#: (1 … 40 cycles per turn of the joint `position`, picked from the data) and its coefficients, so
+#: three slots reach orders far above `hdjax._effects.MAX_ORDER` = 8, which is the number of
+#: *fixed* orders 1 … 8 (cycles per wave-generator turn) that `Effects` carries for the plant.
+HARMONIC_SLOTS = 3
 STATE_SCALE = 1e-3  # smoothing scale of u(s) on the dimensionless presliding state
 
 
 def _f3(x):
-    return jnp.broadcast_to(jnp.asarray(x, dtype=float), (MAX_ORDERS,))
+    return jnp.broadcast_to(jnp.asarray(x, dtype=float), (HARMONIC_SLOTS,))
 
 
 class FrictionParameters(eqx.Module):

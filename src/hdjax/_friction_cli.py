@@ -9,7 +9,7 @@ import types
 import numpy as np
 
 from ._data import Dataset
-from ._friction import FRICTION_NAMES, FRICTION_UNITS, MAX_ORDERS, amplitude_phase
+from ._friction import FRICTION_NAMES, FRICTION_UNITS, HARMONIC_SLOTS, amplitude_phase
 from ._friction_diag import _add, _Fold, diagnose_friction, fold_params
 from ._friction_fit import (
     HARMONIC_FIELDS,
@@ -23,6 +23,7 @@ from ._friction_fit import (
 )
 from ._friction_lowspeed import fit_low_speed, low_speed_reason
 from ._io import atomic_write_json, atomic_write_text
+from ._significance import FRICTION_RULES
 
 TRAIN_FRACTION = 0.7
 _TIED = {TIE_NEG_TO_POS: ("Tvn", "Tsn", "Tssn1"), TIE_POS_TO_NEG: ("Tvp", "Tsp", "Tssp1")}
@@ -332,7 +333,7 @@ def _finding_params(problem: FrictionProblem, fold: _Fold, effect: str) -> dict:
         sin_coef, cos_coef = (np.asarray(getattr(p, k)) for k in HARMONIC_FIELDS[effect])
         key = "epsilon" if effect == "position_dependent_friction" else "b"
         out = {}
-        for j in range(MAX_ORDERS):
+        for j in range(HARMONIC_SLOTS):
             if orders[j] > 0:
                 a, ph = amplitude_phase(sin_coef[j], cos_coef[j])
                 k = int(orders[j])
@@ -354,7 +355,8 @@ _PHYSICS = {
 }
 
 
-def friction_diagnosis_doc(problem: FrictionProblem, dataset_name: str, *, min_gain: float = 0.01, log=print) -> dict:
+def friction_diagnosis_doc(problem: FrictionProblem, dataset_name: str, *, min_gain: float = FRICTION_RULES.min_relative_gain,
+                           log=print) -> dict:
     """Run `diagnose_friction` and build the SPEC §3 diagnosis.json (plus extras)."""
     d = diagnose_friction(problem, min_gain=min_gain, log=log)
     # the extended model on all samples, effects added in the order found

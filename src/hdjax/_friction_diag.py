@@ -8,14 +8,15 @@ held-out predictions of all folds make one held-out record.
 
 Greedy forward selection (`diagnose_friction`): starting from eq. 9, each applicable candidate of
 `CANDIDATES` is added to the current model and refitted on every fold (all eq. 9 parameters free
-too, started from the current fold fit). A candidate is *significant* when the held-out RMS falls
-by at least `min_gain` (relative) and the held-out error falls in every fold (all but one with 5
-or more folds). The best significant candidate is accepted and the loop repeats on the rest.
+too, started from the current fold fit). A candidate is *significant* under `hdjax._significance.FRICTION_RULES`
+(the rules' type is shared with the dynamic diagnosis): the held-out RMS falls by at least
+`min_gain` (relative) and the held-out error falls in every fold (all but one with 5 folds).
+The best significant candidate is accepted and the loop repeats on the rest.
 
 Start values are cheap linear least squares on the current fold residual: harmonic orders
 (cycles per turn of `position`, greedy over 1 … `max_order`) for the two periodic candidates,
-a grid of presliding distances (Dahl state by the same exact recurrence in numpy, eq. 9 refitted
-linearly with the state replacing sign), a grid of time constants for thermal drift.
+a grid of presliding distances (the model's own Dahl state, `presliding_state`, with eq. 9's
+regressors refitted linearly with the state replacing sign), a grid of time constants for thermal drift.
 """
 
 import dataclasses
@@ -25,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._friction import MAX_ORDERS, STATE_SCALE, FrictionParameters, FrictionStructure, presliding_state
+from ._friction import HARMONIC_SLOTS, STATE_SCALE, FrictionParameters, FrictionStructure, presliding_state
 from ._friction_fit import (
     HARMONIC_FIELDS,
     SLOT,
@@ -36,6 +37,7 @@ from ._friction_fit import (
     vector_to_params,
 )
 from ._model import Smoothing, friction_basis, friction_parts
+from ._significance import FRICTION_RULES, Significance
 from ._smooth import smooth_step
 
 MAX_FOLDS = 5
@@ -79,11 +81,11 @@ def _lstsq_gain(A, r):
 
 def choose_orders(problem: FrictionProblem, theta, r, g, on, *, max_order: int, min_drop: float = 0.1):
     """Greedy harmonic orders of `Σ g·(a sin kθ + b cos kθ)` explaining residual `r` on samples `on`:
-    up to `MAX_ORDERS` orders, each kept only if it cuts the residual sum of squares by `min_drop`."""
+    up to `HARMONIC_SLOTS` orders, each kept only if it cuts the residual sum of squares by `min_drop`."""
     th, rr, gg = theta[on], r[on], g[on]
     sse0 = float(np.sum(rr**2))
     cols, orders, coef = [], [], None
-    for _ in range(MAX_ORDERS):
+    for _ in range(HARMONIC_SLOTS):
         best = (sse0, None, None)
         for k in range(1, max_order + 1):
             if k in orders:
@@ -172,10 +174,10 @@ def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: 
         orders, coef = choose_orders(problem, theta, r, g, on, max_order=max_order)
         if coef is None:  # no order kept (`coef` is None exactly when `orders` is empty)
             orders, coef = [1], _lstsq_gain(np.stack([g[on] * np.sin(theta[on]), g[on] * np.cos(theta[on])], 1), r[on])[0]
-        o = np.zeros(MAX_ORDERS)
+        o = np.zeros(HARMONIC_SLOTS)
         o[: len(orders)] = orders
         sl_s, sl_c = (SLOT[k] for k in HARMONIC_FIELDS[name])
-        cs, cc = np.zeros(MAX_ORDERS), np.zeros(MAX_ORDERS)
+        cs, cc = np.zeros(HARMONIC_SLOTS), np.zeros(HARMONIC_SLOTS)
         cs[: len(orders)], cc[: len(orders)] = coef[0::2], coef[1::2]
         x[sl_s], x[sl_c] = cs / scale[sl_s], cc / scale[sl_c]
         free[sl_s] = free[sl_c] = o > 0
@@ -284,12 +286,11 @@ def cv_eq9(problem: FrictionProblem, rows: Rows) -> CVResult:
     return _cv_fit(problem, rows, folds)
 
 
-def _significant(before: CVResult, after: CVResult, min_gain: float) -> tuple[bool, float, float]:
+def _significant(before: CVResult, after: CVResult, rule: Significance) -> tuple[bool, float, float]:
+    """(named?, held-out gain, share of folds improved) of `after` against `before` under `rule`."""
     gain = 1.0 - after.rms / before.rms
-    better = after.fold_mse < before.fold_mse
-    F = len(better)
-    need = F if F < 5 else F - 1
-    return bool(gain >= min_gain and better.sum() >= need), float(gain), float(better.mean())
+    improved = float((after.fold_mse < before.fold_mse).mean())
+    return bool(gain >= rule.min_relative_gain and rule.consistent(improved)), float(gain), improved
 
 
 @dataclasses.dataclass(eq=False)
@@ -306,9 +307,11 @@ class FrictionDiagnosis:
     max_order: int
 
 
-def diagnose_friction(problem: FrictionProblem, *, min_gain: float = 0.01, candidates=CANDIDATES,
-                      rows: Rows | None = None, log=print) -> FrictionDiagnosis:
-    """Greedy cross-validated selection of friction extensions (module docstring)."""
+def diagnose_friction(problem: FrictionProblem, *, min_gain: float = FRICTION_RULES.min_relative_gain,
+                      candidates=CANDIDATES, rows: Rows | None = None, log=print) -> FrictionDiagnosis:
+    """Greedy cross-validated selection of friction extensions (module docstring), named under
+    `FRICTION_RULES` with its effect size set to `min_gain`."""
+    rule = dataclasses.replace(FRICTION_RULES, min_relative_gain=min_gain)
     rows = friction_folds(problem) if rows is None else rows
     why = applicable(problem)
     skipped = {c: why[c] for c in candidates if why[c] is not None}
@@ -323,7 +326,7 @@ def diagnose_friction(problem: FrictionProblem, *, min_gain: float = 0.01, candi
             folds = [_add(problem, f, name, rows.train[b], current.fit.prediction[b], max_order)
                      for b, f in enumerate(current.folds)]
             res = _cv_fit(problem, rows, folds)
-            ok, gain, frac = _significant(current, res, min_gain)
+            ok, gain, frac = _significant(current, res, rule)
             scores[name] = (ok, gain, frac, res)
             log(f"  + {name}: held-out RMS {current.rms:.4g} → {res.rms:.4g} N·m ({gain:+.1%}, better in {frac:.0%} of folds)")
         rounds.append({k: {"significant": v[0], "relative_reduction": v[1], "folds_improved": v[2],

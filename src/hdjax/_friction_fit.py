@@ -38,7 +38,7 @@ from ._data import FrictionExperiment
 from ._effects import THERMAL_TAU
 from ._friction import (
     FRICTION_NAMES,
-    MAX_ORDERS,
+    HARMONIC_SLOTS,
     FrictionParameters,
     FrictionStructure,
     friction_model_torque,
@@ -47,7 +47,7 @@ from ._lm import MarquardtLM
 from ._model import Smoothing, friction_basis
 from ._parameterisation import Entry, Parameterisation, parameterisation, slots, vector_size
 
-M = MAX_ORDERS
+M = HARMONIC_SLOTS
 #: The fit's vector: eq. 9 (torques scaled, Tss2 on a log scale), the harmonic slots of the two
 #: position extensions (scaled), the presliding distance and thermal τ (log), thermal β (scaled).
 FRICTION_ENTRIES = (
@@ -414,20 +414,27 @@ class FrictionProblem:
         n = int(np.sum((w > 0) & mask))
         p = int(free.sum())
         s2 = float(np.sum(r**2)) / max(n - p, 1)
-        n_eff = 0.0
-        for e in range(self.E):
-            on = (w[e] > 0) & mask[e]
-            re = (fit.prediction[b][e, idx] - self.T[e, idx])[on]
-            if re.size < 3:
-                continue
-            d = re - re.mean()
-            rho = float(np.clip(np.sum(d[1:] * d[:-1]) / max(np.sum(d * d), 1e-300), 0.0, 0.999))
-            n_eff += re.size * (1 - rho) / (1 + rho)
+        on = (w > 0) & mask
+        n_eff = effective_samples((fit.prediction[b][e, idx] - self.T[e, idx])[on[e]] for e in range(self.E))
         inflate = n / max(n_eff, p + 1.0)
         cov = s2 * inflate * np.linalg.pinv(Jf.T @ Jf)
         se = np.full(N_PARAMS, np.nan)
         se[free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         return se
+
+
+def effective_samples(residuals) -> float:
+    """$n_{eff} = \\sum_e n_e (1-\\rho_e)/(1+\\rho_e)$ over records' residuals (an iterable of
+    1-d arrays), $\\rho_e$ the lag-1 autocorrelation clipped to [0, 0.999]; records with fewer
+    than 3 samples add nothing. Standard errors scale with $\\sqrt{n/n_{eff}}$."""
+    n_eff = 0.0
+    for re in residuals:
+        if re.size < 3:
+            continue
+        d = re - re.mean()
+        rho = float(np.clip(np.sum(d[1:] * d[:-1]) / max(np.sum(d * d), 1e-300), 0.0, 0.999))
+        n_eff += re.size * (1 - rho) / (1 + rho)
+    return n_eff
 
 
 def physical_std_errors(x: np.ndarray, se: np.ndarray, scale) -> np.ndarray:
@@ -541,14 +548,8 @@ def fit_coulomb_viscous(problem: "FrictionProblem", w: np.ndarray) -> tuple[dict
     sw = np.sqrt(w[on])
     c, *_ = np.linalg.lstsq(A[on] * sw[:, None], problem.T[on] * sw, rcond=None)
     pred = A @ c
-    n_eff, n = 0.0, int(on.sum())
-    for e in range(problem.E):
-        re = (pred - problem.T)[e][on[e]]
-        if re.size < 3:
-            continue
-        d = re - re.mean()
-        rho = float(np.clip(np.sum(d[1:] * d[:-1]) / max(np.sum(d * d), 1e-300), 0.0, 0.999))
-        n_eff += re.size * (1 - rho) / (1 + rho)
+    n = int(on.sum())
+    n_eff = effective_samples((pred - problem.T)[e][on[e]] for e in range(problem.E))
     s2 = float(np.sum(((pred - problem.T)[on] * sw) ** 2)) / max(n - 2, 1)
     cov = s2 * n / max(n_eff, 3.0) * np.linalg.pinv((A[on] * sw[:, None]).T @ (A[on] * sw[:, None]))
     return {"Tv": float(c[0]), "Tc": float(c[1])}, np.sqrt(np.clip(np.diag(cov), 0, None)), pred

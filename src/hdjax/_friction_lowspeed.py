@@ -35,7 +35,7 @@ import numpy as np
 import scipy.optimize
 
 from ._friction import dahl_recurrence
-from ._friction_fit import FrictionProblem, rms_stats
+from ._friction_fit import FrictionProblem, effective_samples, rms_stats
 
 LOW_SPEED_LIMIT = 0.01  # rad/s: records whose 98th percentile |ω| is below this use the low-speed law
 LOW_SPEED_MODELS = ("regularised_coulomb", "dahl_presliding")
@@ -182,14 +182,7 @@ def law_std_errors(problem: FrictionProblem, law: LowSpeedLaw, w: np.ndarray) ->
     r = (A[1] @ c - problem.T)[on]
     n, p = r.size, J.shape[1]
     s2 = float(r @ r) / max(n - p, 1)
-    n_eff = 0.0
-    for e in range(problem.E):
-        re = (A[1] @ c - problem.T)[e][on[e]]
-        if re.size < 3:
-            continue
-        d = re - re.mean()
-        rho = float(np.clip(np.sum(d[1:] * d[:-1]) / max(np.sum(d * d), 1e-300), 0.0, 0.999))
-        n_eff += re.size * (1 - rho) / (1 + rho)
+    n_eff = effective_samples((A[1] @ c - problem.T)[e][on[e]] for e in range(problem.E))
     cov = s2 * n / max(n_eff, p + 1.0) * np.linalg.pinv(J.T @ J)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     out = {k: float(se[i]) for i, k in enumerate(lin[:2])}
