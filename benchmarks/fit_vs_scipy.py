@@ -18,7 +18,7 @@ What is compared (all sides identical except for the numerics engine):
   noise levels (`hdjax.noise_levels`, computed once and given to all), the output-position
   residual projected off {offset, slope} per experiment, as `hdjax.experiment_residuals`;
 - unknowns: the same nine parameters (`DEFAULT_FREE`) in the same unconstrained coordinates (log
-  of the positive ones, Stribeck amplitudes scaled by their start value; `Parameterisation.to_model`/`to_vector`,
+  of the positive ones, Stribeck amplitudes scaled by their start value; `to_params`/`to_theta`,
   written symbolically on the CasADi side); alpha, Tss2 fixed;
 - start point: the paper's identification on all 50 HD2 experiments (`identify_paper`);
 - ODE tolerances rtol 1e-6, atol 1e-8 on all sides (hdjax `Simulator(rtol=1e-6, atol=1e-8)`,

@@ -71,10 +71,10 @@ def one(n_exp: int, n_samples: int, max_steps: int) -> dict:
     sim = hdjax.Simulator(rtol=1e-6, atol=1e-8)
     sigma = noise_levels(batch)
     pmap = make_parameter_map(p0, DEFAULT_FREE)
-    theta0 = pmap.to_theta(p0)
+    theta0 = pmap.to_vector(p0)
 
     def residuals(theta, b):
-        p = pmap.to_params(theta, p0)
+        p = pmap.to_model(theta, p0)
         # as the fit evaluates them: `vmap` on accelerators, `lax.map` on the CPU
         return for_each_experiment(lambda e: experiment_residuals(p, ds.drive, e, sigma, sim), b).reshape(-1)
 
