@@ -22,6 +22,7 @@ regressors refitted linearly with the state replacing sign), a grid of time cons
 import dataclasses
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -106,9 +107,13 @@ def choose_orders(problem: FrictionProblem, theta, r, g, on, *, max_order: int, 
 def presliding_states(v, t, delta, smoothing: Smoothing) -> np.ndarray:
     """`hdjax.presliding_state` for every record `v`, `t` (experiment, time) and every presliding
     distance of `delta` (grid,): shape (grid, experiment, time)."""
+    return np.asarray(_presliding_states(jnp.asarray(v), jnp.asarray(t), jnp.asarray(delta, dtype=float), smoothing))
+
+
+@eqx.filter_jit
+def _presliding_states(v, t, delta, smoothing):
     per_record = jax.vmap(presliding_state, in_axes=(0, 0, None, None))
-    return np.asarray(jax.vmap(per_record, in_axes=(None, None, 0, None))(
-        jnp.asarray(v), jnp.asarray(t), jnp.asarray(delta, dtype=float), smoothing))
+    return jax.vmap(per_record, in_axes=(None, None, 0, None))(v, t, delta, smoothing)
 
 
 @dataclasses.dataclass(eq=False)
