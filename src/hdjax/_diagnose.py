@@ -352,8 +352,6 @@ def _gn_step(r: np.ndarray, J: np.ndarray, rows, cols_idx) -> np.ndarray:
     return _solve_normal(JJ.T @ JJ, JJ.T @ rr)
 
 
-
-
 @dataclasses.dataclass
 class _Loop:
     """The state of one diagnosis: the data, the compiled problem, the current model z (base θ and
@@ -513,7 +511,7 @@ def _screened_orders(evidence: dict, orders, candidates: list[str], log) -> tupl
 
 
 def _torque_balance_route(loop: _Loop, traj, evidence: dict, drive: Drive, *, requested: set, max_findings: int,
-                          min_improved_fraction: float, cand_idx: dict, orders_of: dict, log) -> list[dict]:
+                          rule: Significance, cand_idx: dict, orders_of: dict, log) -> list[dict]:
     """Cogging and position-dependent friction from the motor torque balance (module docstring,
     step 2b), before the output-error rounds: an order that stands out in the torque-balance
     spectrum (measured signals, eq. 8) is judged by its held-out gain in that residual, record by
@@ -544,7 +542,7 @@ def _torque_balance_route(loop: _Loop, traj, evidence: dict, drive: Drive, *, re
                 continue  # a strain-gauge ripple, not a cogging (see TB_RIPPLE_RATIO)
         log(f"diagnose: torque balance: {name} [{k}] peak {over_med:.1f}× median, held-out gain {100 * cv['gain']:+.2f} % "
             f"(improved in {cv['n_improved']} of {cv['n_records']} records)")
-        if not (cv["gain"] > TB_MIN_GAIN and cv["improved_fraction"] >= min_improved_fraction):
+        if not (cv["gain"] > TB_MIN_GAIN and rule.consistent(cv["improved_fraction"])):
             continue
         jcols = [n_base + j for j in _candidate_columns(cols, name, [k])]  # sin, cos of order k
         scale = np.array([cols[j - n_base].scale for j in jcols])
@@ -1061,7 +1059,7 @@ def diagnose(
     tb_findings = []
     if tb_route:
         tb_findings = _torque_balance_route(loop, traj, evidence, drive, requested=requested, max_findings=max_findings,
-                                            min_improved_fraction=min_improved_fraction, cand_idx=cand_idx,
+                                            rule=rule, cand_idx=cand_idx,
                                             orders_of=orders_of, log=log)
     tb_found = [f["effect"] for f in tb_findings]
     for name in tb_found:

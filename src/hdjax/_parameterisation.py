@@ -9,13 +9,13 @@ as it has elements), how a slot of $x$ becomes a value:
 |---|---|---|
 | `"scaled"` | `offset + scale·x` | signed values, O(1) in x (torques over their RMS, effect amplitudes from a start) |
 | `"log"` | `scale·exp(x)` | positive values (K1, Jeff, Tss2, time constants); relative changes |
-
 | `"logit"` | `lo + (hi − lo)·sigmoid(x)` | values inside bounds (α) |
 
 With `scale` = a reference value, a `"log"` slot is the relative change ln(value/reference)
-(sensitivities, controller gains). The entries are static (one compiled program per layout); `scale` and `offset` are array leaves
-(one program serves every start and every dataset). `to_model(x, base)` returns `base` with the
-listed fields replaced (every other field as in `base`); `to_vector(model)` is its inverse.
+(sensitivities, controller gains). The entries are static (one compiled program per layout);
+`scale` and `offset` are array leaves (one program serves every start and every dataset).
+`to_model(x, base)` returns `base` with the listed fields replaced (every other field as in
+`base`); `to_vector(model)` is its inverse.
 """
 
 from collections.abc import Sequence
@@ -68,19 +68,16 @@ class Parameterisation(eqx.Module):
             raise KeyError(f"`Parameterisation`: no field {field!r}; fields: {list(self.fields)}.")
         return where[field]
 
-    def _pieces(self, x):
-        j = 0
-        for e in self.entries:
-            n = 1 if e.size is None else e.size
-            sl = slice(j, j + n)
-            yield e, (x[j] if e.size is None else x[sl]), (self.scale[j] if e.size is None else self.scale[sl]), (
-                self.offset[j] if e.size is None else self.offset[sl])
-            j += n
+    def _slots(self) -> list[tuple[Entry, int | slice]]:
+        """Each entry with its vector index (scalar field) or slice (array field)."""
+        where = slots(self.entries)
+        return [(e, where[e.field]) for e in self.entries]
 
     def values(self, x: Float[Array, " vector"]) -> dict[str, Array]:
         """The model values of the vector, by field."""
         out = {}
-        for e, xi, s, o in self._pieces(x):
+        for e, at in self._slots():
+            xi, s, o = x[at], self.scale[at], self.offset[at]
             if e.transform == "log":
                 out[e.field] = s * jnp.exp(xi)
             elif e.transform == "logit":
@@ -98,7 +95,8 @@ class Parameterisation(eqx.Module):
     def to_vector(self, model: eqx.Module) -> Float[Array, " vector"]:
         """The vector of `model`'s fields (inverse of `to_model`)."""
         out = []
-        for e, v, s, o in self._pieces_of(model):
+        for e, at in self._slots():
+            v, s, o = jnp.asarray(getattr(model, e.field), dtype=float), self.scale[at], self.offset[at]
             if e.transform == "log":
                 out.append(jnp.log(v / s))
             elif e.transform == "logit":
@@ -108,17 +106,6 @@ class Parameterisation(eqx.Module):
             else:
                 out.append((v - o) / s)
         return jnp.concatenate([jnp.reshape(a, (-1,)) for a in out])
-
-    def _pieces_of(self, model):
-        j = 0
-        for e in self.entries:
-            n = 1 if e.size is None else e.size
-            v = jnp.asarray(getattr(model, e.field), dtype=float)
-            if e.size is None:
-                yield e, v, self.scale[j], self.offset[j]
-            else:
-                yield e, v, self.scale[j : j + n], self.offset[j : j + n]
-            j += n
 
 
 def _check(entries: tuple[Entry, ...], scale_shape, offset_shape) -> None:
