@@ -1,4 +1,11 @@
-"""Friction-only model, fit and diagnosis on rig-style synthetic friction records (fixed seeds)."""
+"""Friction-only model, fit and diagnosis on rig-style synthetic friction records (fixed seeds).
+
+Inverse crime, stated: these records are made by `friction_model_torque`, the same model code the
+fit and the diagnosis use, plus white noise; nothing but the noise differs. They check that the
+fit recovers what it can represent and that the loop names what it can model; they prove nothing
+about a real joint. Real measured friction is checked by `experiments/real_friction.py` (not a
+test: the data may not be copied into the project).
+"""
 
 import json
 
