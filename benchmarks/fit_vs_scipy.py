@@ -82,6 +82,7 @@ Usage: `python benchmarks/fit_vs_scipy.py [--constrained 2] [--free 2] [--sample
 """
 
 import argparse
+import bisect
 import json
 import math
 import os
@@ -156,7 +157,7 @@ def simulate_scipy(p, drive, e, method, rtol=1e-6):
     """One experiment with solve_ivp; returns (torque, motor velocity, output angle, ok)."""
     N, Km, Jl = drive["N"], drive["Km"], drive["Jload"]
     t = e["time"]
-    dt = t[1] - t[0]
+    tl = [float(x) for x in t]
     cur = e["current"]
     free = e["free"]
     wm0, T0, dT0, tho0 = start_fits(e)
@@ -165,13 +166,14 @@ def simulate_scipy(p, drive, e, method, rtol=1e-6):
     K1, Tst, al, Je = p["K1"], p["Tst"], p["alpha"], p["Jeff"]
     Tvp, Tvn, Tsp, Tsn, Ts1p, Ts1n, Tss2 = (p[k] for k in ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2"))
     n = len(t)
-    t0 = t[0]
 
     def f(tk, y):
         q, wm, _, wo = y
-        s = (tk - t0) / dt
-        i = min(max(int(s), 0), n - 2)
-        w = s - i
+        # the recorded time stamps, not a uniform grid: the bench's stamps jitter (SPEC §2 allows it),
+        # and a grid from the first step put the square-wave current's edges up to 0.5 ms off
+        # after 500 samples (112-121 noise-sigma in motor velocity, fixed 2026-11-27)
+        i = min(max(bisect.bisect_right(tl, tk) - 1, 0), n - 2)
+        w = (tk - tl[i]) / (tl[i + 1] - tl[i])
         current = (1 - w) * cur[i] + w * cur[i + 1]
         rate = wm / N - wo
         T = K1 * q + Tst * rate * (rate * rate + RATE_SCALE * RATE_SCALE) ** ((al - 1) / 2)
@@ -297,13 +299,15 @@ def main() -> None:
         simulator = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=args.hdjax_substeps))
     # the reference must simulate the same model: compare both simulations at the start point
     tr = eqx.filter_jit(hdjax.simulate_batch)(p0, ds.drive, batch, simulator=simulator)
-    worst = 0.0
+    worst, where = 0.0, ""
     for k, e in enumerate(plain):
         T, wm, tho = simulate_scipy(p0d, drive, e, args.method, args.ode_rtol)
-        worst = max(worst, np.max(np.abs(T - np.asarray(tr.torque[k]))) / sig[0],
-                    np.max(np.abs(wm - np.asarray(tr.motor_velocity[k]))) / sig[1])
+        for ch, a, b, s in (("torque", T, tr.torque[k], sig[0]), ("motor velocity", wm, tr.motor_velocity[k], sig[1])):
+            dev = np.abs(a - np.asarray(b)) / s
+            if dev.max() > worst:
+                worst, where = float(dev.max()), f"{ds.files[sel[k]]} {ch}, sample {int(np.argmax(dev))}"
     print(f"check: hdjax vs scipy simulation at the start point, max |difference| = {worst:.3g} noise std "
-          f"(torque, motor velocity)", flush=True)
+          f"(torque, motor velocity; largest in {where})", flush=True)
 
     theta0 = to_theta(p0d, p0d)
     r0 = residuals_scipy(theta0, p0d, drive, plain, sig, args.method, args.ode_rtol)
