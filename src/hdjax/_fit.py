@@ -298,9 +298,10 @@ class CostStop(optx.AbstractLeastSquaresSolver):
       a safeguard when the Jacobian is poor;
     - *predicted gain small*: the full Gauss–Newton step from the accepted point predicts a decrease
       of ½χ² under `gain_rtol` of its value (MINPACK's predicted-reduction test; 0 switches it
-      off): the stall rule's threshold, without waiting `window` steps to see it, and below what the adaptive solve resolves
-      (½χ² jitters by ~1e-5 relative at rtol 1e-5). On the HD2 joint fit the steps after that point
-      were all rejected (4 of 9 LM steps, ½χ² unchanged to 8 digits, 2026-11-27).
+      off): the stall rule's threshold, without waiting `window` steps to see it, and below what
+      the adaptive solve resolves (½χ² jitters by ~1e-5 relative at rtol 1e-5). On the HD2 joint
+      fit every step after that point was rejected (steps 5–9 of 9, ½χ² unchanged to 8 digits,
+      2026-11-27).
 
     Everything else is the inner solver's; the fit stays one compiled optimistix loop with one
     residual-and-Jacobian evaluation per LM step. `state.reason` says which rule stopped it
