@@ -8,7 +8,8 @@ This script measures it: the relative error of each Jacobian column of `experime
 (whitened torque, motor velocity, output position of one record) at rtol 1e-4, 1e-5 and 1e-6
 (atol = rtol/100) against rtol 1e-8, on a 16-record dataset of the independent bench (the one
 `benchmarks/diagnose_16.py` diagnoses: HD1, seed 11, an order-2 kinematic error at 4× noise),
-for the paper model alone and with one SPEC §4 effect switched on at a typical magnitude.
+for the paper model alone and with one SPEC §4 effect (or §4b `sensor_bandwidth`) switched on at a
+typical magnitude.
 
 Columns: K1 (relative change) and the effect's own parameter. Usage:
 `python benchmarks/jacobian_accuracy.py [record index ...]` (default: a locked and two free records).
