@@ -9,7 +9,8 @@ model_form items adopted and the time; then recall (datasets named exactly right
 effects and, for periodic effects, orders), false findings on clean datasets, wrong names and
 the time per dataset.
 
-Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE]`.
+Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
+[--seeds 5000,5004] [--readapt-after-form]`.
 """
 
 import argparse
@@ -103,9 +104,15 @@ def main() -> int:
     ap.add_argument("--datasets", default=None,
                     help="keep the generated datasets in this folder (one sub-folder per seed) and reuse those "
                          "already there whose truth.yaml has the planned seed, drive and effects")
+    ap.add_argument("--seeds", default=None, help="only these seeds of the plan, comma-separated (e.g. 5000,5004)")
+    ap.add_argument("--readapt-after-form", action="store_true",
+                    help="diagnose with readapt_after_form=True (re-fit after the model_form adjustments)")
     args = ap.parse_args()
+    only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
     rows = []
     for case in plan(args.n, args.first):
+        if only is not None and case["seed"] not in only:
+            continue
         with tempfile.TemporaryDirectory() as tmp:
             folder = pathlib.Path(args.datasets or tmp) / f"seed_{case['seed']}"
             if not _matches(folder, case):
@@ -115,7 +122,7 @@ def main() -> int:
         exps = [ds.experiments[i] for i in ds.dynamic_indices()]
         t0 = time.perf_counter()
         paper = identify_paper(exps, ds.drive)
-        d = diagnose(paper.parameters(), ds.drive, exps)
+        d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=args.readapt_after_form)
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
         right = set(found) == set(truth) and all(truth[k] == found[k] for k in truth if k in PERIODIC)
