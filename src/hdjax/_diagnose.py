@@ -14,9 +14,10 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    Jacobian once adjustments are adopted: a sensor lag fitted from zero moves the model far from
    where the first Jacobian was taken. It names hidden Dahl hysteresis and a second effect that the
    default misses, but loses two kinematic errors, a strain-gauge ripple and an input delay (a
-   true order-1 kinematic error fitted mostly on free-motion tests, whose simulated θm drifts,
-   then costs the locked tests more than `MODE_TRADE` allows), and a diagnosis takes 1.5–2.2× as
-   long (`benchmarks/RESULTS.md`).
+   true order-1 kinematic error, whose columns are zeroed in the locked tests and which is so
+   fitted on free tests only, then costs the locked tests more than `MODE_TRADE` allows; θm drift
+   in the free tests was tested as the cause and is not), and a diagnosis takes 1.5–2.2× as long
+   (`benchmarks/RESULTS.md`).
 2. Evidence from residuals: order spectra against the simulated wave-generator angle θm (cycles
    per turn) for torque, velocity and output position, split locked/free, and correlations of the
    residuals with torsion, torsion³, |T|·sign(ω), di/dt and session time. The periodic
