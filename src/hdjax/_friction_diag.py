@@ -287,7 +287,7 @@ def cv_eq9(problem: FrictionProblem, rows: Rows) -> CVResult:
     folds = []
     for w in rows.train:
         tie = problem.tie_for(w)
-        folds.append(_Fold(problem.start_eq9(w, tie), tie, problem.base_free(tie), FrictionStructure()))
+        folds.append(_Fold(problem.start_eq9(w, tie), tie, problem.base_free(tie, w), FrictionStructure()))
     return _cv_fit(problem, rows, folds)
 
 

@@ -17,6 +17,12 @@ The vector is normalised (viscous by RMS torque / RMS velocity, torques by RMS t
 torque. Directions without data (fewer than `MIN_DIRECTION_SAMPLES` samples beyond
 3 × `Smoothing.velocity_scale`, or under 2 % of the moving samples) cannot be identified: their three
 parameters are tied to the other direction's (a symmetric-friction assumption the report states).
+Likewise the Stribeck part is a low-speed feature: it is fitted only when at least as many
+training samples (the same count) lie below `STRIBECK_LOW` = 1/10 of the training samples' own
+speed range (98th percentile of |ω|). Without them (a fit on steady high-speed samples alone)
+the Stribeck amplitudes are held at zero and `Tss2` is not fitted: otherwise the fit bends a
+steep exponential tail through the high-speed samples, and what it predicts at low speed is
+unbounded (seen: 6e13 N·m on the held-out start-up block of a real velocity sweep).
 
 Standard errors are Gauss–Newton, $s^2 (J^\top J)^{-1}$, inflated by $n / n_{eff}$ with
 $n_{eff} = \sum_e n_e (1-\rho_e)/(1+\rho_e)$ from each record's lag-1 residual autocorrelation
@@ -67,6 +73,7 @@ EQ9_SLOTS = [IDX[k] for k in FRICTION_NAMES]  # the eq. 9 part of the vector, in
 MIN_DIRECTION_SAMPLES = 50
 DENSE_BELOW = 10.0  # velocity scales below which every sample enters the fit (`FrictionProblem.index`)
 MIN_DIRECTION_FRACTION = 0.02
+STRIBECK_LOW = 0.1  # low speed, as a fraction of the training samples' 98th-percentile |ω| (Stribeck support)
 TIE_NONE, TIE_NEG_TO_POS, TIE_POS_TO_NEG = 0, 1, 2
 RTOL, ATOL, XTOL = 1e-10, 1e-14, 1e-9  # LM stopping: relative / absolute cost change, relative step
 
@@ -299,12 +306,11 @@ class FrictionProblem:
 
     def eq9_identifiable(self, w: np.ndarray) -> bool:
         """True when samples `w > 0` hold enough motion in at least one direction for eq. 9."""
-        npos, nneg = self.directions(w)
-        return max(npos, nneg) >= max(MIN_DIRECTION_SAMPLES, MIN_DIRECTION_FRACTION * (npos + nneg))
+        return max(self.directions(w)) >= self._needed(w)
 
     def tie_for(self, w: np.ndarray) -> int:
         npos, nneg = self.directions(w)
-        need = max(MIN_DIRECTION_SAMPLES, MIN_DIRECTION_FRACTION * (npos + nneg))
+        need = self._needed(w)
         if npos < need and nneg < need:
             raise ValueError(
                 f"friction fit ({', '.join(self.files)}): only {npos} positive and {nneg} negative velocity samples "
@@ -313,7 +319,22 @@ class FrictionProblem:
                 "low-speed law instead (`hdjax._friction_lowspeed.fit_low_speed`, used by `fit` automatically).")
         return TIE_NONE if min(npos, nneg) >= need else (TIE_NEG_TO_POS if npos >= need else TIE_POS_TO_NEG)
 
-    def base_free(self, tie: int | np.integer) -> np.ndarray:
+    def _needed(self, w: np.ndarray) -> float:
+        """Samples a direction (or the Stribeck part) needs among those of weight `w` > 0."""
+        npos, nneg = self.directions(w)
+        return float(max(MIN_DIRECTION_SAMPLES, MIN_DIRECTION_FRACTION * (npos + nneg)))
+
+    def stribeck_supported(self, w: np.ndarray) -> bool:
+        """True when the samples `w > 0` hold enough low-speed samples to fit the Stribeck part
+        (module docstring: `STRIBECK_LOW`)."""
+        speed = np.abs(self.v[(w > 0) & self.mask])
+        if not speed.size:
+            return False
+        return bool(np.sum(speed <= STRIBECK_LOW * np.quantile(speed, 0.98)) >= self._needed(w))
+
+    def base_free(self, tie: int | np.integer, w: np.ndarray | None = None) -> np.ndarray:
+        """Eq. 9's free slots for a fit of direction tie `tie` on the samples `w > 0` (all
+        samples when None); the Stribeck slots are held when `w` cannot see the term."""
         free = np.zeros(N_PARAMS, bool)
         free[EQ9_SLOTS] = True
         if tie == TIE_NEG_TO_POS:
@@ -322,6 +343,8 @@ class FrictionProblem:
             free[[IDX["Tvp"], IDX["Tsp"], IDX["Tssp1"]]] = False
         if self.Tss2 is not None:
             free[SLOT["Tss2"]] = False
+        if not self.stribeck_supported(self.mask.astype(float) if w is None else w):
+            free[[IDX["Tssp1"], IDX["Tssn1"], SLOT["Tss2"]]] = False
         return free
 
     # ---------------------------------------------------------------- eq. 9 start values
@@ -342,15 +365,18 @@ class FrictionProblem:
         best, x_best = np.inf, None
         sw = np.sqrt(w[self.mask])
         y = self.T[self.mask] * sw
-        pairs = [(0, 1), (2, 3), (4, 5)]
-        for tss2 in self.tss2_grid():
-            A = self.basis(tss2)[self.mask] * sw[:, None]
+        stribeck = self.stribeck_supported(w)
+        n_cols = 6 if stribeck else 4  # without low-speed samples: no Stribeck columns (held at zero)
+        pairs = [(0, 1), (2, 3), (4, 5)][: n_cols // 2]
+        for tss2 in self.tss2_grid() if stribeck else self.tss2_grid()[-1:]:
+            A = self.basis(tss2)[self.mask][:, :n_cols] * sw[:, None]
             if tie != TIE_NONE:
                 A = np.stack([A[:, i] + A[:, j] for i, j in pairs], 1)
             c, *_ = np.linalg.lstsq(A, y, rcond=None)
             sse = float(np.sum((A @ c - y) ** 2))
             if sse < best:
                 coef = np.repeat(c, 2) if tie != TIE_NONE else c
+                coef = np.concatenate([coef, np.zeros(6 - n_cols)])
                 best, x_best = sse, np.concatenate([coef, [np.log(tss2)]])
         x = np.zeros(N_PARAMS)
         eq9 = EQ9_SLOTS
@@ -396,7 +422,7 @@ class FrictionProblem:
         """Eq. 9 alone on every row (start values from `start_eq9`)."""
         tie = np.array([self.tie_for(w) for w in rows.train])
         x0 = np.stack([self.start_eq9(w, t) for w, t in zip(rows.train, tie)])
-        free = np.stack([self.base_free(t) for t in tie])
+        free = np.stack([self.base_free(t, w) for w, t in zip(rows.train, tie)])
         return self.solve(rows, FrictionStructure(), x0, free, tie)
 
     def std_errors(self, fit: RowFit, rows: Rows, b: int = 0) -> np.ndarray:
