@@ -131,7 +131,7 @@ class FrictionExperiment(eqx.Module):
     - `start_time`: time since the session began (s), 0 when not given.
     - `mask`: True on real samples, False on padding.
 
-    A stacked batch (`stack_friction`) has a leading experiment axis on every field (`*exp`).
+    A stacked batch (`stack_experiments`) has a leading experiment axis on every field (`*exp`).
     """
 
     time: Float[Array, "*exp time"]

@@ -1,5 +1,9 @@
 """Measured experiments as array PyTrees, one per record; batches are padded and masked."""
 
+import dataclasses
+from collections.abc import Sequence
+from typing import TypeVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -108,15 +112,25 @@ def _pad(x: np.ndarray, n: int, *, extend_time: bool = False) -> np.ndarray:
     return np.concatenate([x, np.full(n - len(x), x[-1])])
 
 
-def stack_experiments(experiments: list[Experiment], length: int | None = None) -> Experiment:
-    """Stack experiments along a leading `experiment` axis, padding each to `length` samples
-    (default: the longest). Padding repeats the last sample, extends the time grid and is masked
-    out, so it never enters a residual."""
+R = TypeVar("R", bound=eqx.Module)
+
+
+def stack_experiments(experiments: Sequence[R], length: int | None = None) -> R:
+    """Stack records of one kind (`Experiment`, or `FrictionExperiment` for friction-only data)
+    along a leading `experiment` axis, padding each to `length` samples (default: the longest).
+    Padding repeats the last sample, extends the time grid and is masked out, so it never enters
+    a residual (a friction record's presliding state runs on through it, after its real samples).
+    The one stacking function of every workflow."""
     if not experiments:
         raise ValueError("`stack_experiments`: no experiments given.")
-    n = max(int(e.time.shape[0]) for e in experiments) if length is None else length
+    kind = type(experiments[0])
+    if any(type(e) is not kind for e in experiments):
+        raise ValueError(f"`stack_experiments`: mixed record kinds {sorted({type(e).__name__ for e in experiments})}; "
+                         "stack one kind at a time.")
+    n = max(int(e.time.shape[0]) for e in experiments) if length is None else length  # pyright: ignore[reportAttributeAccessIssue]
     fields = {}
-    for name in Experiment.__dataclass_fields__:
+    for f in dataclasses.fields(kind):
+        name = f.name
         vals = []
         for e in experiments:
             v = np.asarray(getattr(e, name))
@@ -127,7 +141,7 @@ def stack_experiments(experiments: list[Experiment], length: int | None = None) 
                     v = _pad(v, n, extend_time=(name == "time"))
             vals.append(v)
         fields[name] = jnp.asarray(np.stack(vals))
-    return Experiment(**fields)
+    return kind(**fields)
 
 
 def select_experiments(modes: list[str], max_n: int) -> list[int]:

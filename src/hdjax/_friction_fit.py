@@ -42,6 +42,7 @@ import scipy.signal
 
 from ._data import FrictionExperiment
 from ._effects import THERMAL_TAU
+from ._experiment import stack_experiments
 from ._friction import (
     FRICTION_NAMES,
     HARMONIC_SLOTS,
@@ -76,29 +77,6 @@ MIN_DIRECTION_FRACTION = 0.02
 STRIBECK_LOW = 0.1  # low speed, as a fraction of the training samples' 98th-percentile |ω| (Stribeck support)
 TIE_NONE, TIE_NEG_TO_POS, TIE_POS_TO_NEG = 0, 1, 2
 RTOL, ATOL, XTOL = 1e-10, 1e-14, 1e-9  # LM stopping: relative / absolute cost change, relative step
-
-
-def stack_friction(experiments: list[FrictionExperiment]) -> FrictionExperiment:
-    """Pad friction experiments to a common length (time and position repeat their last value,
-    so the presliding state holds on padding; `mask` False there) and stack them."""
-    n = max(int(np.asarray(e.mask).sum()) for e in experiments)
-    cols = {k: [] for k in ("time", "velocity", "friction_torque", "position", "mask")}
-    for e in experiments:
-        m = np.asarray(e.mask)
-        for k in cols:
-            a = np.asarray(getattr(e, k))[m]
-            pad = n - a.size
-            if k == "mask":
-                cols[k].append(np.concatenate([a, np.zeros(pad, bool)]))
-            elif k in ("time", "position"):
-                cols[k].append(np.concatenate([a, np.full(pad, a[-1])]))
-            else:
-                cols[k].append(np.concatenate([a, np.zeros(pad)]))
-    return FrictionExperiment(
-        **{k: jnp.asarray(np.stack(v)) for k, v in cols.items()},
-        has_position=jnp.asarray([float(e.has_position) for e in experiments]),
-        start_time=jnp.asarray([float(e.start_time) for e in experiments]),
-    )
 
 
 def _tied(p: FrictionParameters, tie) -> FrictionParameters:
@@ -226,7 +204,7 @@ class FrictionProblem:
     def __post_init__(self):
         if not self.experiments:
             raise ValueError("`FrictionProblem`: no friction experiments given.")
-        self.data = stack_friction(self.experiments)
+        self.data = stack_experiments(self.experiments)
         self.mask = np.asarray(self.data.mask)
         self.v = np.asarray(self.data.velocity)
         self.T = np.asarray(self.data.friction_torque)
