@@ -15,8 +15,7 @@ import os
 
 import jax
 
-from hdjax import use_host_devices
-from hdjax._sharding import HOST_DEVICES_ENV, available_cores
+from hdjax import HOST_DEVICES_ENV, available_cores, use_host_devices
 
 _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _workers > 1 and not os.environ.get(HOST_DEVICES_ENV):

@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from hdjax import PARAMETER_NAMES, Effects
-from hdjax._artifacts import effects_from_dict, effects_to_dict, fit_json_dataset, read_extended_model, read_fit_json
+from hdjax import PARAMETER_NAMES, Effects, effects_from_dict, effects_to_dict, read_extended_model, read_fit_json
+from hdjax._artifacts import fit_json_dataset
 from helpers import hd2
 
 

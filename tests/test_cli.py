@@ -30,8 +30,8 @@ import pathlib
 
 import pytest
 
-from hdjax import _cli
-from hdjax._config import ConfigError, check_keys, section_options
+from hdjax import ConfigError, _cli
+from hdjax._config import check_keys, section_options
 
 
 def _help(capsys, argv):

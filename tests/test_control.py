@@ -8,8 +8,21 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hdjax import Plant, Smoothing, TorqueController, TorqueGains, closed_loop, load_dataset, sine_reference, step_reference
-from hdjax._control import GainScaling, batch_cost, relay_test, smooth_saturation, tune_gains, ziegler_nichols_pi
+from hdjax import (
+    GainScaling,
+    Plant,
+    Smoothing,
+    TorqueController,
+    TorqueGains,
+    closed_loop,
+    load_dataset,
+    relay_test,
+    sine_reference,
+    step_reference,
+    tune_gains,
+    ziegler_nichols_pi,
+)
+from hdjax._control import batch_cost, smooth_saturation
 from hdjax._tune import _options
 from helpers import hd1
 
@@ -145,7 +158,7 @@ def test_step_metrics_refuse_an_empty_window():
     """A doublet whose width equals its edge time has no plateau: asking for its step metrics is an
     error with the window named (it was a bare numpy 'zero-size array' error from `hdjax tune` on the
     shipped HD2 data)."""
-    from hdjax._control import step_metrics
+    from hdjax import step_metrics
 
     t = np.arange(100) * 1e-3
     with pytest.raises(ValueError, match=r"no sample in the step window \[0.05, 0.05\)"):

@@ -11,8 +11,18 @@ import numpy as np
 import pytest
 import yaml
 
-from hdjax import DatasetError, Drive, Experiment, load_dataset, make_experiment, write_dataset
-from hdjax._data import FrictionExperiment, load_config, make_friction_experiment, resolve_target
+from hdjax import (
+    DatasetError,
+    Drive,
+    Experiment,
+    FrictionExperiment,
+    load_config,
+    load_dataset,
+    make_experiment,
+    make_friction_experiment,
+    write_dataset,
+)
+from hdjax._data import resolve_target
 
 DRIVE = Drive(gear_ratio=160.0, torque_constant=0.1815, load_inertia=0.5)
 

@@ -2,8 +2,8 @@
 
 import numpy as np
 
+from hdjax import Significance
 from hdjax._diagnose import _judge, _solve_normal
-from hdjax._significance import Significance
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -73,7 +73,7 @@ def test_significance_needs_both_halves_and_the_effect_size():
 
 def test_friction_rules_need_every_fold_up_to_four_and_all_but_one_of_five():
     """The friction-only diagnosis's fold rule, as one value of the shared `Significance` type."""
-    from hdjax._significance import FRICTION_RULES, OUTPUT_ERROR_RULES
+    from hdjax import FRICTION_RULES, OUTPUT_ERROR_RULES
 
     for folds in range(1, 6):
         for improved in range(folds + 1):

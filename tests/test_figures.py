@@ -26,8 +26,8 @@ def test_fig3_optimal_alpha_curve_fits_at_least_as_well(alpha_true):
     # the curve Fig. 3 used to draw, the optimal α swapped into the α = ½ fit's K1 and Tst, is
     # not that parameter set's fit, and fits visibly worse whenever α moved
     if abs(opt["alpha"] - 0.5) > 0.05:
+        from hdjax import smooth_signed_power
         from hdjax._paper_id import _TORSION_RATE_SCALE, _prepare
-        from hdjax._smooth import smooth_signed_power
 
         q, _, _ = _prepare(exps, DRIVE, 50.0, 5, [])
         tors, rate, T = (np.asarray(x[0]) for x in (q.torsion, q.torsion_rate, q.torque))
@@ -43,8 +43,7 @@ def test_diagnosis_figures_draw_spectra_residuals_and_the_loop(tmp_path):
 
     import matplotlib.pyplot as plt
 
-    from hdjax import stack_experiments
-    from hdjax._effects import MAX_ORDER
+    from hdjax import MAX_ORDER, stack_experiments
     from hdjax.plotting import diagnosis_figures
     from helpers import sine_experiment
 

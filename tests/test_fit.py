@@ -10,8 +10,8 @@ import optimistix as optx
 import pytest
 
 import hdjax
-from hdjax import fit_parameters, fit_per_experiment, identify_paper, load_dataset, write_dataset
-from hdjax._fit import CostStop, _final_residual_and_jacobian, _stalled
+from hdjax import CostStop, fit_parameters, fit_per_experiment, identify_paper, load_dataset, write_dataset
+from hdjax._fit import _final_residual_and_jacobian, _stalled
 from hdjax.fit import run_fit
 from helpers import hd2
 

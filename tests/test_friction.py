@@ -14,9 +14,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hdjax import FrictionParameters, FrictionProblem, FrictionStructure, diagnose_friction, fit_coulomb_viscous, friction_model_torque, rms_stats
-from hdjax._data import make_friction_experiment
-from hdjax._friction import FRICTION_NAMES
+from hdjax import (
+    FRICTION_NAMES,
+    FrictionParameters,
+    FrictionProblem,
+    FrictionStructure,
+    diagnose_friction,
+    fit_coulomb_viscous,
+    friction_model_torque,
+    make_friction_experiment,
+    rms_stats,
+)
 
 jax.config.update("jax_enable_x64", True)
 

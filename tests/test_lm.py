@@ -52,7 +52,8 @@ def test_composes_with_cost_stop_like_optimistix_levenberg_marquardt():
     """`CostStop` (the trajectory fit's stopping rules) reads the inner state's `f_info` and
     `num_steps`; with `MarquardtLM` inside it stops a jittery problem by its Gauss–Newton-step rule
     at the optimum, and hands back the residual and Jacobian at the returned point."""
-    from hdjax._fit import CostStop, _final_residual_and_jacobian
+    from hdjax import CostStop
+    from hdjax._fit import _final_residual_and_jacobian
 
     A = jnp.array([[1.0, 0.2], [0.3, 2.0], [1.0, 1.0], [0.5, -1.0]])
     b = A @ jnp.array([2.0, -1.0]) + jnp.array([0.01, -0.02, 0.015, -0.005])

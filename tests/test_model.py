@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import hdjax
-from hdjax._smooth import smooth_sign, smooth_signed_power, smooth_step
+from hdjax import smooth_sign, smooth_signed_power, smooth_step
 from helpers import hd1, hd2, sine_experiment
 
 DEFAULT = hdjax.Smoothing()

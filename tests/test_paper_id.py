@@ -12,8 +12,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 import pytest
 
-from hdjax import PARAMETER_NAMES, Drive, Parameters, identify_paper, make_experiment
-from hdjax._paper_id import PAPER_HD2_SI, PaperIdentification, _consistency
+from hdjax import PAPER_HD2_SI, PARAMETER_NAMES, Drive, PaperIdentification, Parameters, identify_paper, make_experiment
+from hdjax._paper_id import _consistency
 
 # HD2-like values in SI (paper Table I, K1 and Tst read per degree)
 TRUE = dict(alpha=0.5, K1=5970.0, Tst=60.2, Jeff=1e-4, Tvp=1.8e-3, Tvn=2.1e-3, Tsp=0.075, Tsn=0.033,

@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, sys.argv[1])
 from helpers import hd2
 import hdjax
-from hdjax._fit import fit_parameters
+from hdjax import fit_parameters
 from hdjax._sharding import shard_experiments
 
 p, drive = hd2()

@@ -116,8 +116,7 @@ def test_user_data_is_validated_on_the_identified_model_and_says_so(tmp_path, mo
     heavy numerics are replaced by stand-ins; only the wording path is exercised."""
     import matplotlib.figure
 
-    from hdjax import _tune, load_dataset
-    from hdjax._control import LoopTrajectory, TuneResult
+    from hdjax import LoopTrajectory, TuneResult, _tune, load_dataset
 
     # a dataset without the bench's truth (the shipped ones come from the bench since 2026-11-26)
     src = pathlib.Path(__file__).parents[1] / "data" / "hd1"

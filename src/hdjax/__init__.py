@@ -6,20 +6,42 @@ Float64 is not switched on here: commands, tests and scripts call
 
 import importlib.metadata
 
+from ._artifacts import (
+    effects_from_dict as effects_from_dict,
+    effects_to_dict as effects_to_dict,
+    read_extended_model as read_extended_model,
+    read_fit_json as read_fit_json,
+)
+from ._config import ConfigError as ConfigError
 from ._control import (
+    GainScaling as GainScaling,
+    LoopTrajectory as LoopTrajectory,
     Plant as Plant,
     Reference as Reference,
     TorqueController as TorqueController,
     TorqueGains as TorqueGains,
+    TuneResult as TuneResult,
     closed_loop as closed_loop,
     doublet_reference as doublet_reference,
+    relay_test as relay_test,
     sine_reference as sine_reference,
+    step_metrics as step_metrics,
     step_reference as step_reference,
     tracking_cost as tracking_cost,
+    tune_gains as tune_gains,
+    ziegler_nichols_pi as ziegler_nichols_pi,
 )
-from ._data import Dataset as Dataset, DatasetError as DatasetError, load_dataset as load_dataset, write_dataset as write_dataset
+from ._data import (
+    Dataset as Dataset,
+    DatasetError as DatasetError,
+    FrictionExperiment as FrictionExperiment,
+    load_config as load_config,
+    load_dataset as load_dataset,
+    make_friction_experiment as make_friction_experiment,
+    write_dataset as write_dataset,
+)
 from ._diagnose import Diagnosis as Diagnosis, covariate_drifts as covariate_drifts, diagnose as diagnose_effects  # noqa: F401 (public alias)
-from ._effects import EFFECT_NAMES as EFFECT_NAMES, Effects as Effects
+from ._effects import EFFECT_NAMES as EFFECT_NAMES, MAX_ORDER as MAX_ORDER, Effects as Effects
 from ._experiment import (
     Experiment as Experiment,
     make_experiment as make_experiment,
@@ -31,6 +53,7 @@ from ._experiment import (
 from ._fit import (
     DEFAULT_FREE as DEFAULT_FREE,
     POSITIVE as POSITIVE,
+    CostStop as CostStop,
     experiment_residuals as experiment_residuals,
     fit_noise_levels as fit_noise_levels,
     fit_parameters as fit_parameters,
@@ -39,6 +62,7 @@ from ._fit import (
     noise_levels as noise_levels,
 )
 from ._friction import (
+    FRICTION_NAMES as FRICTION_NAMES,
     FrictionParameters as FrictionParameters,
     FrictionStructure as FrictionStructure,
     friction_model_torque as friction_model_torque,
@@ -63,7 +87,7 @@ from ._model import (
     friction_torque as friction_torque,
     motor_acceleration as motor_acceleration,
 )
-from ._paper_id import identify_paper as identify_paper
+from ._paper_id import PAPER_HD2_SI as PAPER_HD2_SI, PaperIdentification as PaperIdentification, identify_paper as identify_paper
 from ._parameterisation import Entry as Entry, Parameterisation as Parameterisation, parameterisation as parameterisation
 from ._plant import (
     Simulator as Simulator,
@@ -73,10 +97,14 @@ from ._plant import (
     simulate_batch as simulate_batch,
 )
 from ._sharding import (
+    HOST_DEVICES_ENV as HOST_DEVICES_ENV,
+    available_cores as available_cores,
     experiment_batching as experiment_batching,
     for_each_experiment as for_each_experiment,
     use_host_devices as use_host_devices,
 )
+from ._significance import FRICTION_RULES as FRICTION_RULES, OUTPUT_ERROR_RULES as OUTPUT_ERROR_RULES, Significance as Significance
+from ._smooth import smooth_sign as smooth_sign, smooth_signed_power as smooth_signed_power, smooth_step as smooth_step
 from ._solver import Rodas3 as Rodas3
 from ._stepper import VelocityImplicit as VelocityImplicit
 
