@@ -383,6 +383,7 @@ class _Loop:
     r_raw: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # and sensor-weighted ones
     noise_model: _NoiseModel | None = None  # set in each round: every residual and Jacobian is whitened by it
     jac_cache: dict = dataclasses.field(default_factory=dict)  # column → unwhitened Jacobian column (exp, channel, time)
+    jac_full: dict = dataclasses.field(default_factory=dict)  # the same before the unresolved experiments are zeroed
 
     @property
     def n_exp(self) -> int:
@@ -408,6 +409,7 @@ class _Loop:
             for k, j in enumerate(need):
                 self.jac_cache[j] = Jn[..., k]
                 if j in self.unresolved:
+                    self.jac_full[j] = Jn[..., k].copy()
                     # a periodic term over less than one of its cycles is a smooth function of θm that
                     # absorbs other misfit (a locked test turns the wave generator by a fraction of a
                     # turn): it is fitted, and its fit judged, only where it completes a cycle (its
@@ -418,6 +420,12 @@ class _Loop:
         if self.noise_model is not None:
             J = self.noise_model.whiten(J)
         return J
+
+    def full_jacobian(self, sel) -> np.ndarray:
+        """Whitened Jacobian columns `sel` from the cache, with the unresolved experiments not
+        zeroed (what each column does everywhere; call after `jacobian(z, sel)`)."""
+        J = np.stack([self.jac_full.get(j, self.jac_cache[j]) for j in sel], axis=-1)
+        return self.noise_model.whiten(J) if self.noise_model is not None else J
 
     def simulate_each(self, zs, data=None):
         """Residuals (exp, 3, time) with experiment j of `data` (default: the diagnosed batch)
@@ -693,14 +701,18 @@ class _FoldFits:
     fit_folds: np.ndarray
     A_exp: np.ndarray
     b_exp: np.ndarray
+    J_full: np.ndarray | None = None  # J with the unresolved experiments not zeroed (`two_stage`)
+    unresolved: frozenset = frozenset()  # columns zeroed somewhere
 
     @classmethod
-    def at(cls, loop: _Loop, J: np.ndarray, sel: list[int], fit_folds: np.ndarray) -> "_FoldFits":
+    def at(cls, loop: _Loop, J: np.ndarray, sel: list[int], fit_folds: np.ndarray, *, two_stage: bool = False) -> "_FoldFits":
         """The fold fits at `loop`'s current model, with `J` (columns `sel`)."""
         n_exp = loop.n_exp
         Jf = J.reshape(n_exp, -1, J.shape[-1])
         return cls(z=loop.z, r=loop.r, J=J, col_of={j: k for k, j in enumerate(sel)}, n_base=loop.n_base, fit_folds=fit_folds,
-                   A_exp=np.einsum("eti,etj->eij", Jf, Jf), b_exp=np.einsum("eti,et->ei", Jf, loop.r.reshape(n_exp, -1)))
+                   A_exp=np.einsum("eti,etj->eij", Jf, Jf), b_exp=np.einsum("eti,et->ei", Jf, loop.r.reshape(n_exp, -1)),
+                   J_full=loop.full_jacobian(sel) if two_stage else None,
+                   unresolved=frozenset(j for j in sel if j in loop.unresolved))
 
     def steps(self, idx):
         """Per-experiment parameter vectors: experiment j gets the Gauss–Newton fit of the base
@@ -713,12 +725,36 @@ class _FoldFits:
         k = [self.col_of[j] for j in cols_]
         A = self.A_exp[:, k][:, :, k]
         b = self.b_exp[:, k]
+        part = [j for j in idx if j in self.unresolved] if self.J_full is not None else []
         for f in np.unique(self.fit_folds):
             test = self.fit_folds == f
             delta = _solve_normal(A[~test].sum(0), b[~test].sum(0))
+            if part:
+                delta = self._second_stage(cols_, delta, part, test)
+                pred[test] = self.r[test] + self.J_full[test][..., k] @ delta
+            else:
+                pred[test] = self.r[test] + self.J[test][..., k] @ delta
             zs[np.ix_(test, cols_)] += delta
-            pred[test] = self.r[test] + self.J[test][..., k] @ delta
         return zs, pred
+
+    def _second_stage(self, cols_: list[int], delta: np.ndarray, part: list[int], test: np.ndarray) -> np.ndarray:
+        """`two_stage`: the periodic columns `part` keep their fit from the experiments where they
+        complete a cycle (`delta`); every other column is re-fitted on the training experiments to
+        what those terms do everywhere (the unzeroed Jacobian `J_full`). Without this, a term fitted
+        on free tests changes the locked tests' effective stiffness, which no other column was
+        fitted to take up (measured 2026-11-27 on bench seed 5012: locked tests −29 % held out)."""
+        assert self.J_full is not None
+        n_exp = self.r.shape[0]
+        pos = {j: i for i, j in enumerate(cols_)}
+        rest = [j for j in cols_ if j not in part]
+        Jr = self.J_full.reshape(n_exp, -1, self.J_full.shape[-1])[~test][..., [self.col_of[j] for j in rest]]
+        Jp = self.J_full.reshape(n_exp, -1, self.J_full.shape[-1])[~test][..., [self.col_of[j] for j in part]]
+        dp = delta[[pos[j] for j in part]]
+        rr = self.r.reshape(n_exp, -1)[~test] + Jp @ dp
+        d_rest = _solve_normal(np.einsum("eti,etj->ij", Jr, Jr), np.einsum("eti,et->i", Jr, rr))
+        out = delta.copy()
+        out[[pos[j] for j in rest]] = d_rest
+        return out
 
 
 def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, modes: np.ndarray, k: int,
@@ -916,7 +952,7 @@ class _Outcome:
 def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: list[str], remaining: list[str], cand_idx: dict,
                    folds: np.ndarray, fit_folds: np.ndarray, n_found_before: int, max_findings: int, misfit_scaling: bool,
                    reuse_jacobian: bool, refine_steps: int, refine_jacobians: int, confirm_top: int, rule: Significance,
-                   log, readapt_after_form: bool = False) -> None:
+                   log, readapt_after_form: bool = False, two_stage_periodic: bool = False) -> None:
     """The greedy rounds (module docstring, steps 3–5), recorded in `out`: each round re-estimates the
     noise model, takes one Jacobian (w.r.t. the base, the accepted effects and every candidate) at
     the current model, refines base + accepted effects, screens and accepts the best candidate;
@@ -944,7 +980,7 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
         for stage in stages:
             form_round = stage == "model_form"
             pool = model_form if form_round else remaining
-            ff = _FoldFits.at(loop, J, sel, fit_folds)
+            ff = _FoldFits.at(loop, J, sel, fit_folds, two_stage=two_stage_periodic)
             scores, raw_before, raw_after_of = _screen(loop, ff, pool, chosen_idx, cand_idx, folds,
                                                        n_simulated=len(pool) if form_round else confirm_top, rule=rule, log=log)
             if out.base_res is None:
@@ -1005,6 +1041,7 @@ def diagnose(
     cross_validation: str = "leave_one_out",
     tb_route: bool = True,
     readapt_after_form: bool = False,
+    two_stage_periodic: bool = False,
     log=lambda *_: None,
 ) -> Diagnosis:
     """Find the SPEC §4 effects that the data show beyond the paper's model (see module docstring).
@@ -1022,6 +1059,11 @@ def diagnose(
     adjustments are adopted, re-estimate the noise model and re-fit base + adjustments from a fresh
     Jacobian before effects are screened (default False: the effects are screened with round 1's
     Jacobian and noise model; see the module docstring for what True changes).
+    `two_stage_periodic`: a periodic term that completes no cycle in some experiments is fitted where
+    it does, and then every other fitted column is re-fitted, on the same training experiments, to
+    what the term does everywhere (default False: the term's Jacobian columns are zeroed in those
+    experiments for the whole fold fit, so nothing takes up what it does there; measured 2026-11-27
+    on bench seed 5012, see `benchmarks/RESULTS.md`).
     `model_form` the SPEC §4b base-model assumptions screened (and all significant ones adopted)
     in a first round, before any effect; `per_record_noise` weighs every experiment by its own
     sensor-noise level (else one level per channel); `misfit_scaling` divides the whitened residual
@@ -1092,7 +1134,8 @@ def diagnose(
     _greedy_rounds(loop, out, evidence, model_form=model_form, remaining=remaining, cand_idx=cand_idx, folds=folds,
                    fit_folds=fit_folds, n_found_before=len(tb_found), max_findings=max_findings, misfit_scaling=misfit_scaling,
                    reuse_jacobian=reuse_jacobian, refine_steps=refine_steps, refine_jacobians=refine_jacobians,
-                   confirm_top=confirm_top, rule=rule, log=log, readapt_after_form=readapt_after_form)
+                   confirm_top=confirm_top, rule=rule, log=log, readapt_after_form=readapt_after_form,
+                   two_stage_periodic=two_stage_periodic)
     chosen, adopted, findings, form_items, rounds, base_res = out.chosen, out.adopted, out.findings, out.form_items, out.rounds, out.base_res
 
     # stage 6: the extended model, its description, traces for the figures, what is left

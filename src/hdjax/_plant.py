@@ -289,6 +289,24 @@ def simulate(
     else:
         init_exp = exp
     y0, th_m0 = initial_state(p, drive, init_exp, simulator)
+    if "torque_sensor_ripple" in effects.active:
+        # the ripple is in the measured torque, not in the drive: the initial torsion comes from the
+        # torque without it (else a locked test whose motor sticks keeps the ripple's value at the
+        # start as a torque offset), with θm over the first samples from the first estimate
+        th_m = th_m0 + y0[1] * (exp.time - exp.time[0])
+        init_exp = eqx.tree_at(lambda e: e.torque, init_exp,
+                               init_exp.torque - effects.periodic("torque_sensor_ripple", th_m))
+        y0, th_m0 = initial_state(p, drive, init_exp, simulator)
+    if "kinematic_error" in effects.active:
+        # the measured torque fixes the true torsion Δθ0 = q0 + e(θm0), so the kinematic torsion
+        # state starts at q0 = Δθ0 − e(θm0) (else the simulation starts K1·e(θm0) off the measured
+        # torque, an offset a stuck motor in a locked test keeps); θm0 = N(q0 + θo0) where the motor
+        # angle is not measured, with e evaluated once at the first estimate (error O(N e e'))
+        torsion0, th_o0 = y0[0], y0[2]
+        q0 = torsion0 - effects.periodic("kinematic_error", th_m0)
+        th_m0 = jnp.where(exp.has_motor_position > 0, th_m0, drive.gear_ratio * (q0 + th_o0))
+        q0 = torsion0 - effects.periodic("kinematic_error", th_m0)
+        y0 = (q0,) + tuple(y0[1:])
     if "rate_independent_hysteresis" in effects.active:
         y0 = y0 + (jnp.zeros_like(y0[0]),)
     geometry = (y0[0], y0[2], th_m0)
