@@ -729,7 +729,7 @@ class _FoldFits:
         for f in np.unique(self.fit_folds):
             test = self.fit_folds == f
             delta = _solve_normal(A[~test].sum(0), b[~test].sum(0))
-            if part:
+            if part and self.J_full is not None:
                 delta = self._second_stage(cols_, delta, part, test)
                 pred[test] = self.r[test] + self.J_full[test][..., k] @ delta
             else:
