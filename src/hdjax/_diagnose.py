@@ -17,7 +17,11 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    true order-1 kinematic error, whose columns are zeroed in the locked tests and which is so
    fitted on free tests only, then costs the locked tests more than `MODE_TRADE` allows; θm drift
    in the free tests was tested as the cause and is not), and a diagnosis takes 1.5–2.2× as long
-   (`benchmarks/RESULTS.md`).
+   (`benchmarks/RESULTS.md`). The locked loss has since been traced to the fold fit: such a term
+   still changes the locked tests' effective stiffness, which nothing re-fitted.
+   `two_stage_periodic=True` (option, not yet the default) re-fits the other columns to what the
+   term does everywhere; with both options the kinematic error (seed 5012) and the ripple (5001)
+   are named again (2026-11-27; the benchmark and the test file not yet run with them).
 2. Evidence from residuals: order spectra against the simulated wave-generator angle θm (cycles
    per turn) for torque, velocity and output position, split locked/free, and correlations of the
    residuals with torsion, torsion³, |T|·sign(ω), di/dt and session time. The periodic
