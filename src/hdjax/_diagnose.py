@@ -729,7 +729,7 @@ class _FoldFits:
         k = [self.col_of[j] for j in cols_]
         A = self.A_exp[:, k][:, :, k]
         b = self.b_exp[:, k]
-        part = [j for j in idx if j in self.unresolved] if self.J_full is not None else []
+        part = [j for j in idx if j in self.unresolved]
         for f in np.unique(self.fit_folds):
             test = self.fit_folds == f
             delta = _solve_normal(A[~test].sum(0), b[~test].sum(0))
@@ -751,8 +751,8 @@ class _FoldFits:
         n_exp = self.r.shape[0]
         pos = {j: i for i, j in enumerate(cols_)}
         rest = [j for j in cols_ if j not in part]
-        Jr = self.J_full.reshape(n_exp, -1, self.J_full.shape[-1])[~test][..., [self.col_of[j] for j in rest]]
-        Jp = self.J_full.reshape(n_exp, -1, self.J_full.shape[-1])[~test][..., [self.col_of[j] for j in part]]
+        Jt = self.J_full.reshape(n_exp, -1, self.J_full.shape[-1])[~test]
+        Jr, Jp = Jt[..., [self.col_of[j] for j in rest]], Jt[..., [self.col_of[j] for j in part]]
         dp = delta[[pos[j] for j in part]]
         rr = self.r.reshape(n_exp, -1)[~test] + Jp @ dp
         d_rest = _solve_normal(np.einsum("eti,etj->ij", Jr, Jr), np.einsum("eti,et->i", Jr, rr))

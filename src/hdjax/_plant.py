@@ -292,10 +292,12 @@ def simulate(
     if "torque_sensor_ripple" in effects.active:
         # the ripple is in the measured torque, not in the drive: the initial torsion comes from the
         # torque without it (else a locked test whose motor sticks keeps the ripple's value at the
-        # start as a torque offset), with θm over the first samples from the first estimate
-        th_m = th_m0 + y0[1] * (exp.time - exp.time[0])
+        # start as a torque offset), with θm over the samples `initial_state` reads (the first
+        # `initial_window`) from the first estimate
+        n = min(simulator.initial_window, exp.time.shape[0])
+        th_m = th_m0 + y0[1] * (exp.time[:n] - exp.time[0])
         init_exp = eqx.tree_at(lambda e: e.torque, init_exp,
-                               init_exp.torque - effects.periodic("torque_sensor_ripple", th_m))
+                               init_exp.torque.at[:n].add(-effects.periodic("torque_sensor_ripple", th_m)))
         y0, th_m0 = initial_state(p, drive, init_exp, simulator)
     if "kinematic_error" in effects.active:
         # the measured torque fixes the true torsion Δθ0 = q0 + e(θm0), so the kinematic torsion
