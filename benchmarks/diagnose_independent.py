@@ -10,7 +10,7 @@ effects and, for periodic effects, orders), false findings on clean datasets, wr
 the time per dataset.
 
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
-[--seeds 5000,5004] [--readapt-after-form]`.
+[--seeds 5000,5004] [--readapt-after-form] [--two-stage-periodic]`.
 """
 
 import argparse
@@ -107,6 +107,9 @@ def main() -> int:
     ap.add_argument("--seeds", default=None, help="only these seeds of the plan, comma-separated (e.g. 5000,5004)")
     ap.add_argument("--readapt-after-form", action="store_true",
                     help="diagnose with readapt_after_form=True (re-fit after the model_form adjustments)")
+    ap.add_argument("--two-stage-periodic", action="store_true",
+                    help="diagnose with two_stage_periodic=True (re-fit the other columns to what a periodic term "
+                         "fitted where it completes a cycle does everywhere)")
     args = ap.parse_args()
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
     rows = []
@@ -122,7 +125,8 @@ def main() -> int:
         exps = [ds.experiments[i] for i in ds.dynamic_indices()]
         t0 = time.perf_counter()
         paper = identify_paper(exps, ds.drive)
-        d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=args.readapt_after_form)
+        d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=args.readapt_after_form,
+                     two_stage_periodic=args.two_stage_periodic)
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
         right = set(found) == set(truth) and all(truth[k] == found[k] for k in truth if k in PERIODIC)

@@ -265,21 +265,46 @@ def _at_sample_times(step_ts, step_ys, time):
     return jax.tree.map(lambda y: y[idx], step_ys)
 
 
-def simulate(
-    p: Parameters,
-    drive: Drive,
-    exp: Experiment,
-    *,
-    effects: Effects = Effects(),
-    simulator: Simulator = Simulator(),
-) -> Trajectory:
-    """Simulate one experiment driven by its measured current; outputs at its sample times.
+def _invert_stiffness(K1, elastic_torque, effects: Effects, *, iterations: int = 80):
+    """The torsion Δθ (rad) at which `stiffness_torque` gives `elastic_torque` (N·m), for the
+    cubic (`nonlinear_stiffness`) and dead-zone (`lost_motion`) springs.
 
-    `effects` switches on model extensions (`hdjax.Effects`, SPEC §4); the default is the
-    paper's model. Padded samples (mask False) are simulated too (with the last current held) and
-    should be ignored by the caller. Under `vmap`, failures are reported in `Trajectory.success`
-    rather than raised.
-    """
+    Bisection on a bracket that holds the root of a monotone spring (|Δθ| ≤ |Tk/K1| + backlash +
+    |Tk/K1| of margin), with the bracket's ends held constant (`stop_gradient`), then one Newton
+    step: at the converged root that step carries the implicit-function derivative
+    −(∂Tk/∂p)/(∂Tk/∂Δθ) to every parameter, so forward-mode Jacobians stay exact. Where the
+    bracket holds no sign change (a softening K3 < 0 past its turning point), the linear
+    inverse Tk/K1 is kept."""
+    target = jnp.asarray(elastic_torque)
+    x_lin = target / K1
+    d = jnp.abs(effects.backlash) if "lost_motion" in effects.active else jnp.zeros_like(x_lin)
+    width = jax.lax.stop_gradient(jnp.abs(x_lin) + d + 1e-12)
+    lo0 = jax.lax.stop_gradient(jnp.minimum(x_lin, 0.0)) - width
+    hi0 = jax.lax.stop_gradient(jnp.maximum(x_lin, 0.0)) + width
+
+    def residual(x):
+        return stiffness_torque(K1, x, effects) - target
+
+    f_const = lambda x: jax.lax.stop_gradient(residual(x))  # noqa: E731
+    bracketed = f_const(lo0) * f_const(hi0) <= 0.0
+
+    def bisect(_, lohi):
+        lo, hi = lohi
+        mid = 0.5 * (lo + hi)
+        up = f_const(mid) > 0.0  # a monotone increasing spring: the root is below mid
+        return jnp.where(up, lo, mid), jnp.where(up, mid, hi)
+
+    lo, hi = jax.lax.fori_loop(0, iterations, bisect, (lo0, hi0))
+    x0 = jax.lax.stop_gradient(0.5 * (lo + hi))
+    f0, slope = jax.jvp(residual, (x0,), (jnp.ones_like(x0),))
+    x1 = x0 - f0 / jnp.where(slope > 0, slope, 1.0)
+    return jnp.where(bracketed & (slope > 0), x1, x_lin)
+
+
+def _initial_state_with_effects(p, drive, exp, effects, simulator):
+    """`initial_state` for a model with `effects`: the state at the first sample and θm0 (rad),
+    from readings without the modelled sensor offsets and torque-sensor ripple, and with the
+    kinematic torsion state corrected for a modelled kinematic error."""
     if "sensor_offset" in effects.active:  # the initial state from offset-free readings
         init_exp = eqx.tree_at(
             lambda e: (e.torque, e.motor_velocity),
@@ -299,6 +324,13 @@ def simulate(
         init_exp = eqx.tree_at(lambda e: e.torque, init_exp,
                                init_exp.torque.at[:n].add(-effects.periodic("torque_sensor_ripple", th_m)))
         y0, th_m0 = initial_state(p, drive, init_exp, simulator)
+    if "nonlinear_stiffness" in effects.active or "lost_motion" in effects.active:
+        # `initial_state` inverted the linear spring (Δθ0 = Tk0/K1); with a cubic or dead-zone
+        # spring the torsion that gives the same elastic torque Tk0 differs (by K3·Δθ³/K1 or up to
+        # the backlash), and a stuck locked test would keep the difference as a torque offset
+        torsion0 = _invert_stiffness(p.K1, p.K1 * y0[0], effects)
+        th_m0 = jnp.where(exp.has_motor_position > 0, th_m0, drive.gear_ratio * (torsion0 + y0[2]))
+        y0 = (torsion0,) + tuple(y0[1:])
     if "kinematic_error" in effects.active:
         # the measured torque fixes the true torsion Δθ0 = q0 + e(θm0), so the kinematic torsion
         # state starts at q0 = Δθ0 − e(θm0) (else the simulation starts K1·e(θm0) off the measured
@@ -311,6 +343,25 @@ def simulate(
         y0 = (q0,) + tuple(y0[1:])
     if "rate_independent_hysteresis" in effects.active:
         y0 = y0 + (jnp.zeros_like(y0[0]),)
+    return y0, th_m0
+
+
+def simulate(
+    p: Parameters,
+    drive: Drive,
+    exp: Experiment,
+    *,
+    effects: Effects = Effects(),
+    simulator: Simulator = Simulator(),
+) -> Trajectory:
+    """Simulate one experiment driven by its measured current; outputs at its sample times.
+
+    `effects` switches on model extensions (`hdjax.Effects`, SPEC §4); the default is the
+    paper's model. Padded samples (mask False) are simulated too (with the last current held) and
+    should be ignored by the caller. Under `vmap`, failures are reported in `Trajectory.success`
+    rather than raised.
+    """
+    y0, th_m0 = _initial_state_with_effects(p, drive, exp, effects, simulator)
     geometry = (y0[0], y0[2], th_m0)
     # the mean sample step over the valid samples: time stamps may jitter (SPEC §2 allows up to 1 %
     # of the step), and one jittered first step would stretch the whole input's time axis
