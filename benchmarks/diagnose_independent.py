@@ -10,7 +10,7 @@ effects and, for periodic effects, orders), false findings on clean datasets, wr
 the time per dataset.
 
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
-[--seeds 5000,5004] [--readapt-after-form] [--two-stage-periodic]`.
+[--seeds 5000,5004] [--no-readapt-after-form] [--one-stage-periodic]`.
 """
 
 import argparse
@@ -105,11 +105,12 @@ def main() -> int:
                     help="keep the generated datasets in this folder (one sub-folder per seed) and reuse those "
                          "already there whose truth.yaml has the planned seed, drive and effects")
     ap.add_argument("--seeds", default=None, help="only these seeds of the plan, comma-separated (e.g. 5000,5004)")
-    ap.add_argument("--readapt-after-form", action="store_true",
-                    help="diagnose with readapt_after_form=True (re-fit after the model_form adjustments)")
-    ap.add_argument("--two-stage-periodic", action="store_true",
-                    help="diagnose with two_stage_periodic=True (re-fit the other columns to what a periodic term "
-                         "fitted where it completes a cycle does everywhere)")
+    ap.add_argument("--no-readapt-after-form", action="store_true",
+                    help="diagnose with readapt_after_form=False (screen the effects with round 1's Jacobian and "
+                         "noise model; the default before 2026-11-27)")
+    ap.add_argument("--one-stage-periodic", action="store_true",
+                    help="diagnose with two_stage_periodic=False (a periodic term's columns zeroed where it completes "
+                         "no cycle, nothing re-fitted to what it does there; the default before 2026-11-27)")
     args = ap.parse_args()
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
     rows = []
@@ -125,8 +126,8 @@ def main() -> int:
         exps = [ds.experiments[i] for i in ds.dynamic_indices()]
         t0 = time.perf_counter()
         paper = identify_paper(exps, ds.drive)
-        d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=args.readapt_after_form,
-                     two_stage_periodic=args.two_stage_periodic)
+        d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
+                     two_stage_periodic=not args.one_stage_periodic)
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
         right = set(found) == set(truth) and all(truth[k] == found[k] for k in truth if k in PERIODIC)

@@ -40,6 +40,9 @@ NOT_YET = {
                            "(+53 %, one half -1.7 %) and input_delay gain in one half only",
     "thermal_drift": "thermal drift at 4x noise over a 1.5 s x 8 session: no candidate predicted above 1 %",
     "rate_independent_hysteresis": "Dahl hysteresis at 4x noise: predicted -0.4 % after sensor_bandwidth; nothing named",
+    "input_delay": "named by the loop before readapt_after_form became the default (2026-11-27); since, the re-fitted "
+                   "sensor lags take up most of the 0.5 ms delay: +2.6 % held out, folds 3.2 / 2.2 %, 3 of 4 improved, "
+                   "below the 5 % effect size",
 }
 
 

@@ -9,19 +9,14 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    the same held-out rules and every significant one is adopted (`Diagnosis.model_form`); each
    (experiment, channel) is weighted by its own noise level and, where the current model leaves
    more, by that misfit (a bench is never exactly the model). The effects are then screened with
-   the same Jacobian and noise model. `readapt_after_form=True` (measured 2026-11-27, not the
-   default) instead re-estimates the noise model and re-fits base + adjustments from a fresh
-   Jacobian once adjustments are adopted: a sensor lag fitted from zero moves the model far from
-   where the first Jacobian was taken. It names hidden Dahl hysteresis and a second effect that the
-   default misses, but loses two kinematic errors, a strain-gauge ripple and an input delay (a
-   true order-1 kinematic error, whose columns are zeroed in the locked tests and which is so
-   fitted on free tests only, then costs the locked tests more than `MODE_TRADE` allows; θm drift
-   in the free tests was tested as the cause and is not), and a diagnosis takes 1.5–2.2× as long
-   (`benchmarks/RESULTS.md`). The locked loss has since been traced to the fold fit: such a term
-   still changes the locked tests' effective stiffness, which nothing re-fitted.
-   `two_stage_periodic=True` (option, not yet the default) re-fits the other columns to what the
-   term does everywhere; with both options the kinematic error (seed 5012) and the ripple (5001)
-   are named again (2026-11-27; the benchmark and the test file not yet run with them).
+   a fresh Jacobian: once adjustments are adopted, the noise model is re-estimated and base +
+   adjustments are re-fitted from a new Jacobian (`readapt_after_form`, default on since
+   2026-11-27): a sensor lag fitted from zero moves the model far from where the first Jacobian
+   was taken, and the base model's own correction to it dominated every candidate's fit (a hidden
+   Dahl hysteresis and a second effect were missed). `readapt_after_form=False` screens the
+   effects with round 1's Jacobian and noise model, as before; it is faster (one Jacobian and
+   re-fit fewer) and names an input delay that the re-fitted sensor lags otherwise absorb (see
+   `benchmarks/RESULTS.md`, seventeenth and eighteenth sessions, for both on the benchmark).
 2. Evidence from residuals: order spectra against the simulated wave-generator angle θm (cycles
    per turn) for torque, velocity and output position, split locked/free, and correlations of the
    residuals with torsion, torsion³, |T|·sign(ω), di/dt and session time. The periodic
@@ -85,7 +80,12 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
 A periodic term's Jacobian columns are zeroed in experiments where its order completes no cycle
 of θm (locked tests): over a fraction of a cycle it is a smooth function of θm that absorbs other
 misfit, so it is fitted and its fit judged only where it is resolved; its simulated effect still
-enters every held-out figure.
+enters every held-out figure. It still acts there, though (an order-1 kinematic error changes a
+locked test's effective stiffness), so the fold fit has a second stage (`two_stage_periodic`,
+default on since 2026-11-27): with the term fixed at its first-stage values, every other column is
+re-fitted on the same training experiments to what the term does everywhere (unzeroed
+Jacobian). Without it, a true order-1 kinematic error fitted on the free tests cost the locked
+tests 29 % held out, because nothing re-fitted K1 (bench seed 5012).
 
 Look-alikes (kinematic error, strain-gauge ripple, cogging, position-dependent friction are all
 periodic in θm) are told apart by their held-out gains: each predicts a different pattern across
@@ -594,6 +594,28 @@ def _torque_balance_route(loop: _Loop, traj, evidence: dict, drive: Drive, *, re
     return found
 
 
+def _drop_torque_balance_lookalikes(tb_findings: list[dict], orders_of: dict, cand_idx: dict, remaining: list[str],
+                                    cols: list[_Column], n_base: int, log) -> None:
+    """After the torque-balance route names cogging or position-dependent friction at order k, the
+    other of the two is not screened at k by the output-error rounds (updates `orders_of`,
+    `cand_idx`, `remaining`). The torque balance tells them apart directly (a term periodic in θm
+    in e, or in e·sign(ω)); the output error cannot (a torque disturbance integrates with opposite
+    phase in the two directions of motion), and with the found term held at its torque-balance
+    fit, the other one at the same order takes up the correction to it: independent-bench seed
+    5016 (cogging [3] hidden) named a false position_dependent_friction [3] at +3.4 % held out
+    (free tests +5.3 %, 6 of 8 improved) after the route's cogging [3] (2026-11-27)."""
+    other = {"cogging": "position_dependent_friction", "position_dependent_friction": "cogging"}
+    for f in tb_findings:
+        twin, k = other[f["effect"]], f["_tb"]["order"]
+        if twin not in remaining or k not in orders_of.get(twin, []):
+            continue
+        orders_of[twin] = [o for o in orders_of[twin] if o != k]
+        cand_idx[twin] = [n_base + j for j in _candidate_columns(cols, twin, orders_of[twin])]
+        log(f"diagnose: {twin} [{k}] not screened: the torque balance named {f['effect']} [{k}]")
+        if not orders_of[twin]:
+            remaining.remove(twin)
+
+
 def _round_noise_model(loop: _Loop, *, misfit_scaling: bool) -> tuple[np.ndarray, np.ndarray]:
     """Noise model of the model as it now stands (module docstring, step 3), used by every SSE
     compared within this round; sets `loop.noise_model` and re-whitens `loop.r`.
@@ -956,7 +978,7 @@ class _Outcome:
 def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: list[str], remaining: list[str], cand_idx: dict,
                    folds: np.ndarray, fit_folds: np.ndarray, n_found_before: int, max_findings: int, misfit_scaling: bool,
                    reuse_jacobian: bool, refine_steps: int, refine_jacobians: int, confirm_top: int, rule: Significance,
-                   log, readapt_after_form: bool = False, two_stage_periodic: bool = False) -> None:
+                   log, readapt_after_form: bool = True, two_stage_periodic: bool = True) -> None:
     """The greedy rounds (module docstring, steps 3–5), recorded in `out`: each round re-estimates the
     noise model, takes one Jacobian (w.r.t. the base, the accepted effects and every candidate) at
     the current model, refines base + accepted effects, screens and accepts the best candidate;
@@ -1044,8 +1066,8 @@ def diagnose(
     jacobian_rtol: float = 1e-5,
     cross_validation: str = "leave_one_out",
     tb_route: bool = True,
-    readapt_after_form: bool = False,
-    two_stage_periodic: bool = False,
+    readapt_after_form: bool = True,
+    two_stage_periodic: bool = True,
     log=lambda *_: None,
 ) -> Diagnosis:
     """Find the SPEC §4 effects that the data show beyond the paper's model (see module docstring).
@@ -1061,13 +1083,12 @@ def diagnose(
     `cross_validation` "leave_one_out" (each held-out experiment predicted by the fit on all the
     others) or "two_fold" (by the fit on the other half). `readapt_after_form`: after model_form
     adjustments are adopted, re-estimate the noise model and re-fit base + adjustments from a fresh
-    Jacobian before effects are screened (default False: the effects are screened with round 1's
-    Jacobian and noise model; see the module docstring for what True changes).
+    Jacobian before effects are screened (default True; False screens the effects with round 1's
+    Jacobian and noise model, see the module docstring).
     `two_stage_periodic`: a periodic term that completes no cycle in some experiments is fitted where
     it does, and then every other fitted column is re-fitted, on the same training experiments, to
-    what the term does everywhere (default False: the term's Jacobian columns are zeroed in those
-    experiments for the whole fold fit, so nothing takes up what it does there; measured 2026-11-27
-    on bench seed 5012, see `benchmarks/RESULTS.md`).
+    what the term does everywhere (default True; False keeps the term's Jacobian columns zeroed in
+    those experiments for the whole fold fit, so nothing takes up what it does there).
     `model_form` the SPEC §4b base-model assumptions screened (and all significant ones adopted)
     in a first round, before any effect; `per_record_noise` weighs every experiment by its own
     sensor-noise level (else one level per channel); `misfit_scaling` divides the whitened residual
@@ -1132,6 +1153,7 @@ def diagnose(
     for name in tb_found:
         if name in remaining:
             remaining.remove(name)
+    _drop_torque_balance_lookalikes(tb_findings, orders_of, cand_idx, remaining, cols, n_base, log)
 
     # stage 5: greedy rounds
     out = _Outcome(findings=tb_findings)
