@@ -425,11 +425,17 @@ class _Loop:
             J = self.noise_model.whiten(J)
         return J
 
-    def full_jacobian(self, sel) -> np.ndarray:
-        """Whitened Jacobian columns `sel` from the cache, with the unresolved experiments not
-        zeroed (what each column does everywhere; call after `jacobian(z, sel)`)."""
-        J = np.stack([self.jac_full.get(j, self.jac_cache[j]) for j in sel], axis=-1)
-        return self.noise_model.whiten(J) if self.noise_model is not None else J
+    def full_jacobian(self, J: np.ndarray, sel) -> np.ndarray:
+        """`J` (whitened columns `sel`, from `jacobian(z, sel)` under the current noise model) with
+        the unresolved experiments not zeroed: what each column does everywhere. Only the columns
+        that were zeroed are whitened again (the whitening acts on each column alone)."""
+        k = [i for i, j in enumerate(sel) if j in self.jac_full]
+        if not k:
+            return J
+        raw = np.stack([self.jac_full[sel[i]] for i in k], axis=-1)
+        out = J.copy()
+        out[..., k] = self.noise_model.whiten(raw) if self.noise_model is not None else raw
+        return out
 
     def simulate_each(self, zs, data=None):
         """Residuals (exp, 3, time) with experiment j of `data` (default: the diagnosed batch)
@@ -737,7 +743,7 @@ class _FoldFits:
         Jf = J.reshape(n_exp, -1, J.shape[-1])
         return cls(z=loop.z, r=loop.r, J=J, col_of={j: k for k, j in enumerate(sel)}, n_base=loop.n_base, fit_folds=fit_folds,
                    A_exp=np.einsum("eti,etj->eij", Jf, Jf), b_exp=np.einsum("eti,et->ei", Jf, loop.r.reshape(n_exp, -1)),
-                   J_full=loop.full_jacobian(sel) if two_stage else None,
+                   J_full=loop.full_jacobian(J, sel) if two_stage else None,
                    unresolved=frozenset(j for j in sel if j in loop.unresolved))
 
     def steps(self, idx):
