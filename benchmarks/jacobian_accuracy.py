@@ -12,7 +12,9 @@ for the paper model alone and with one SPEC §4 effect (or §4b `sensor_bandwidt
 typical magnitude.
 
 Columns: K1 (relative change) and the effect's own parameter. Usage:
-`python benchmarks/jacobian_accuracy.py [record index ...]` (default: a locked and two free records).
+`python benchmarks/jacobian_accuracy.py [record index ...] [--frozen | --w-method]` (default: a locked
+and two free records; exact tangents through `Rodas3`). `--frozen`: `Rodas3` with tangents that hold
+each step's J constant; `--w-method`: `Ros34PW2`, whose such tangents keep its order.
 """
 
 import sys
@@ -25,7 +27,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hdjax import Effects, Simulator, experiment_residuals, identify_paper, load_dataset, noise_levels, stack_experiments  # noqa: E402
+from hdjax import Effects, Rodas3, Ros34PW2, Simulator, experiment_residuals, identify_paper, load_dataset, noise_levels, stack_experiments  # noqa: E402
 from hdjax.bench import make_dataset  # noqa: E402
 
 with tempfile.TemporaryDirectory() as tmp:
@@ -50,9 +52,13 @@ CASES = {
 RTOLS = (1e-4, 1e-5, 1e-6)
 REFERENCE = 1e-8
 
-records = [int(a) for a in sys.argv[1:]] or [0, 8, 11]
+# --frozen: Rodas3 tangents with the step matrix held constant; --w-method: `Ros34PW2` (frozen, its default)
+FROZEN = "--frozen" in sys.argv
+W_METHOD = "--w-method" in sys.argv
+records = [int(a) for a in sys.argv[1:] if not a.startswith("--")] or [0, 8, 11]
 print(f"dataset: independent bench, HD1, seed 11, {len(exps)} records; columns K1 and the effect's parameter; "
-      f"relative column error against rtol {REFERENCE:g}")
+      f"relative column error against rtol {REFERENCE:g} (exact tangents)"
+      + ("; Ros34PW2 with frozen-J tangents" if W_METHOD else "; Rodas3 tangents with J frozen" if FROZEN else ""))
 print("| record | effect | " + " | ".join(f"rtol {r:g}" for r in RTOLS) + " |")
 print("|---|---|" + "---|" * len(RTOLS))
 for k in records:
@@ -66,7 +72,11 @@ for k in records:
 
         jac = {}
         for rt in RTOLS + (REFERENCE,):
-            sim = Simulator(rtol=rt, atol=rt * 1e-2)
+            if rt == REFERENCE:
+                solver = Rodas3()
+            else:
+                solver = Ros34PW2() if W_METHOD else Rodas3(frozen_jacobian_tangents=FROZEN)
+            sim = Simulator(rtol=rt, atol=rt * 1e-2, solver=solver)
             jac[rt] = np.asarray(jax.jit(jax.jacfwd(lambda x, sim=sim: residual(x, sim)))(jnp.zeros(2)))
         ref = jac[REFERENCE]
         cells = []

@@ -191,3 +191,83 @@ def test_prothero_robinson_error_uniform_in_stiffness():
     # measured: 3.8e-5, 1.3e-6, 1.3e-8
     assert np.all(errors[1:] < errors[:-1] / 10), errors
     assert errors[-1] < 1e-7, errors
+
+
+# ------------------------------------------------------------------------------------------------
+# Ros34PW2, the Rosenbrock-W method of the diagnosis's Jacobians: cheap tangents that keep order 3
+# ------------------------------------------------------------------------------------------------
+
+
+def _w_stability_function(z):
+    from hdjax._solver import W_ALPHA, W_B, W_GAMMA, W_GAMMAS
+
+    a, g = np.zeros((S, S)), np.zeros((S, S))
+    for i in range(S):
+        a[i, :i], g[i, :i] = W_ALPHA[i], W_GAMMAS[i]
+    k = np.linalg.solve((1 - z * W_GAMMA) * np.eye(S) - z * (a + g), z * np.ones(S))
+    return 1.0 + np.array(W_B) @ k
+
+
+def test_ros34pw2_coefficients_are_l_stable_and_stiffly_accurate():
+    from hdjax._solver import W_ALPHA, W_B, W_GAMMA, W_GAMMAS
+
+    # stiffly accurate: b_j = α_4j + γ_4j (j < 4) and b_4 = γ, as PETSc's RA34PW2 table has it
+    np.testing.assert_allclose(W_B[:3], np.add(W_ALPHA[3], W_GAMMAS[3]), rtol=0, atol=1e-15)
+    assert W_B[3] == W_GAMMA
+    y = np.concatenate([np.logspace(-3, 6, 400), -np.logspace(-3, 6, 400)])
+    assert np.max(np.abs([_w_stability_function(1j * v) for v in y])) <= 1.0 + 1e-12
+    assert abs(_w_stability_function(-1e8)) < 1e-7
+
+
+def _two_states(t, y, p):
+    """A nonlinear, non-autonomous, mildly stiff ODE with two parameters."""
+    return jnp.stack([-p[0] * y[0] ** 3 + jnp.sin(3.0 * t) - 5.0 * (y[0] - y[1]), -50.0 * p[1] * (y[1] - jnp.cos(t))])
+
+
+def _end_state(p, solver, n):
+    # the step as an array: one compilation per solver
+    sol = dfx.diffeqsolve(dfx.ODETerm(_two_states), solver, 0.0, 1.0, jnp.asarray(1.0 / n), jnp.array([1.0, 0.5]), args=p,
+                          stepsize_controller=dfx.ConstantStepSize(), max_steps=16384,
+                          adjoint=dfx.ForwardMode(), saveat=dfx.SaveAt(t1=True))
+    return sol.ys[-1]
+
+
+def test_frozen_jacobian_tangents_keep_order_three_only_with_the_w_method():
+    """Tangents that hold each step's J constant are the method applied to the variational equation
+    with blockdiag(J, J) in place of the exact matrix: a W-method (Ros34PW2) keeps its order 3 there,
+    Rodas3 (whose order conditions need the exact J) falls to order 1. Reference: exact tangents
+    through Rodas3 at 8 192 steps."""
+    p = jnp.array([1.3, 0.7])
+    ref = jax.jacfwd(lambda q: _end_state(q, hdjax.Rodas3(), 8192))(p)
+    ns = (32, 64, 128, 256)
+
+    def errors(solver):
+        jac = jax.jit(jax.jacfwd(lambda q, dt: _end_state(q, solver, 1.0 / dt)))
+        return np.array([float(jnp.max(jnp.abs(jac(p, 1.0 / n) - ref))) for n in ns])
+
+    w = errors(hdjax.Ros34PW2())  # frozen tangents: its default
+    r = errors(hdjax.Rodas3(frozen_jacobian_tangents=True))
+    w_orders, r_orders = np.log2(w[:-1] / w[1:]), np.log2(r[:-1] / r[1:])
+    # measured: Ros34PW2 1.2e-5 ... 3.9e-7 at n = 32 ... 128 (orders 2.3, 2.65, ...), Rodas3
+    # frozen 5.7e-4 ... 1.5e-4 (orders 0.98, 0.99, ...)
+    assert w_orders[-1] > 2.6 and np.all(w_orders > 2.0), (w, w_orders)
+    assert np.all(np.abs(r_orders - 1.0) < 0.2), (r, r_orders)
+    assert np.all(w < r / 20), (w, r)
+    # exact tangents (no freezing) of the W-method: the derivative of its discrete solve, order 3
+    e = errors(hdjax.Ros34PW2(frozen_jacobian_tangents=False))
+    assert np.all(np.abs(np.log2(e[:-1] / e[1:]) - 3.0) < 0.2), e
+
+
+def test_ros34pw2_fixed_step_order_three():
+    ns = (40, 80, 160, 320)
+
+    @jax.jit
+    def solve(dt):
+        sol = dfx.diffeqsolve(dfx.ODETerm(_nonlinear), hdjax.Ros34PW2(), 0.0, T_END, dt, jnp.array(1.0),
+                              stepsize_controller=dfx.ConstantStepSize(), max_steps=1024)
+        return sol.ys[-1]
+
+    errors = np.array([abs(float(solve(T_END / n)) - _exact(T_END)) for n in ns])
+    orders = np.log2(errors[:-1] / errors[1:])
+    # measured from n = 20: orders 3.26, 3.15, 3.09 (approaching 3 from above)
+    assert np.all(np.abs(orders - 3.0) < 0.2), (errors, orders)

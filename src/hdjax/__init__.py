@@ -105,7 +105,7 @@ from ._sharding import (
 )
 from ._significance import FRICTION_RULES as FRICTION_RULES, OUTPUT_ERROR_RULES as OUTPUT_ERROR_RULES, Significance as Significance
 from ._smooth import smooth_sign as smooth_sign, smooth_signed_power as smooth_signed_power, smooth_step as smooth_step
-from ._solver import Rodas3 as Rodas3
+from ._solver import Rodas3 as Rodas3, Ros34PW2 as Ros34PW2
 from ._stepper import VelocityImplicit as VelocityImplicit
 
 try:

@@ -25,6 +25,7 @@ from collections.abc import Callable
 from typing import ClassVar
 
 import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
@@ -35,18 +36,36 @@ GAMMAS = ((), (1.0,), (-0.25, -0.25), (1.0 / 12.0, 1.0 / 12.0, -2.0 / 3.0))
 B = (5.0 / 6.0, -1.0 / 6.0, -1.0 / 6.0, 0.5)
 B_HAT = (0.75, -0.25, 0.5, 0.0)
 
+# ROS34PW2 (Rang & Angermann 2005, BIT 45; coefficients as PETSc's `TSROSWRA34PW2` lists them):
+# a 4-stage, stiffly accurate, L-stable Rosenbrock-W method of order 3 whose order conditions hold
+# for *any* matrix in place of J (a W-method), embedded order 2.
+W_GAMMA = 4.3586652150845900e-01
+W_ALPHA = ((), (8.7173304301691801e-01,), (8.4457060015369423e-01, -1.1299064236484185e-01), (0.0, 0.0, 1.0))
+W_GAMMAS = (
+    (),
+    (-8.7173304301691801e-01,),
+    (-9.0338057013044082e-01, 5.4180672388095326e-02),
+    (2.4212380706095346e-01, -1.2232505839045147e00, 5.4526025533510214e-01),
+)
+W_B = (2.4212380706095346e-01, -1.2232505839045147e00, 1.5452602553351020e00, 4.3586652150845900e-01)
+W_B_HAT = (3.7810903145819369e-01, -9.6042292212423178e-02, 5.0000000000000000e-01, 2.1793326075422950e-01)
 
-class Rodas3(dfx.AbstractAdaptiveSolver):
-    """L-stable 3rd-order Rosenbrock solver (4 stages, embedded 2nd order) for small stiff ODEs.
 
-    Works with `ConstantStepSize` (fixed steps, fastest) and with `PIDController` (adaptive).
-    Dense output is cubic Hermite between steps (one extra vector-field evaluation per step).
-    """
+class _Rosenbrock(dfx.AbstractAdaptiveSolver):
+    """A 4-stage Rosenbrock method in Hairer–Wanner form (module docstring), time treated as a
+    state; the tableau is the subclass's."""
+
+    frozen_jacobian_tangents: eqx.AbstractVar[bool]
 
     term_structure: ClassVar = dfx.AbstractTerm
     interpolation_cls: ClassVar[Callable[..., dfx.ThirdOrderHermitePolynomialInterpolation]] = (
         dfx.ThirdOrderHermitePolynomialInterpolation
     )
+    _gamma: ClassVar[float]
+    _alpha: ClassVar[tuple]
+    _gammas: ClassVar[tuple]
+    _b: ClassVar[tuple]
+    _b_hat: ClassVar[tuple]
 
     def order(self, terms):
         del terms
@@ -72,8 +91,12 @@ class Rodas3(dfx.AbstractAdaptiveSolver):
 
         z0 = jnp.concatenate([y0_flat, jnp.reshape(jnp.asarray(t0, dtype=y0_flat.dtype), (1,))])
         J = jax.jacfwd(f)(z0)
+        if self.frozen_jacobian_tangents:
+            # forward-mode tangents see J as a constant: they are this method applied to the
+            # variational equation with the matrix blockdiag(J, J) (see `Ros34PW2`)
+            J = jax.lax.stop_gradient(J)
         n = z0.shape[0]
-        W = jnp.eye(n, dtype=z0.dtype) - (h * GAMMA) * J
+        W = jnp.eye(n, dtype=z0.dtype) - (h * self._gamma) * J
         # the inverse of W, not its LU factors: forward-mode tangents of an inverse are two small
         # matmuls (-W⁻¹ dW W⁻¹), those of `lu_factor` triangular solves and masks; the forward-mode
         # Jacobian of the HD2 fit's residuals is 1.5-1.7x faster this way (benchmarks/RESULTS.md)
@@ -83,12 +106,12 @@ class Rodas3(dfx.AbstractAdaptiveSolver):
             zi = z0
             corr = jnp.zeros_like(z0)
             for j in range(i):
-                zi = zi + ALPHA[i][j] * ks[j]
-                corr = corr + GAMMAS[i][j] * ks[j]
+                zi = zi + self._alpha[i][j] * ks[j]
+                corr = corr + self._gammas[i][j] * ks[j]
             rhs = h * f(zi) + h * (J @ corr)
             ks.append(W_inv @ rhs)
-        z1 = z0 + sum(b * k for b, k in zip(B, ks))
-        z1_hat = z0 + sum(b * k for b, k in zip(B_HAT, ks))
+        z1 = z0 + sum(b * k for b, k in zip(self._b, ks))
+        z1_hat = z0 + sum(b * k for b, k in zip(self._b_hat, ks))
         y1 = unravel(z1[:-1])
         y_error = unravel((z1 - z1_hat)[:-1])
         k0 = unravel(h * f(z0)[:-1])  # pyright: ignore[reportArgumentType]  h · Array is an Array (jax's __array_priority__)
@@ -98,3 +121,53 @@ class Rodas3(dfx.AbstractAdaptiveSolver):
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
+
+
+class Rodas3(_Rosenbrock):
+    """L-stable 3rd-order Rosenbrock solver (4 stages, embedded 2nd order) for small stiff ODEs.
+
+    Works with `ConstantStepSize` (fixed steps, fastest) and with `PIDController` (adaptive).
+    Dense output is cubic Hermite between steps (one extra vector-field evaluation per step).
+
+    **Arguments:**
+
+    - `frozen_jacobian_tangents`: if True, forward-mode tangents treat each step's J as a constant.
+      Rodas3's order conditions need the exact J, so such tangents are only first order (relative
+      errors of 3e-3 to 9e-2 at rtol 1e-5 in `benchmarks/jacobian_accuracy.py --frozen`; see
+      `Ros34PW2`). Default False: tangents are the exact derivative of the discrete solve.
+    """
+
+    frozen_jacobian_tangents: bool = eqx.field(static=True, default=False)
+    _gamma: ClassVar[float] = GAMMA
+    _alpha: ClassVar[tuple] = ALPHA
+    _gammas: ClassVar[tuple] = GAMMAS
+    _b: ClassVar[tuple] = B
+    _b_hat: ClassVar[tuple] = B_HAT
+
+
+class Ros34PW2(_Rosenbrock):
+    r"""ROS34PW2 (Rang & Angermann 2005): a stiffly accurate, L-stable Rosenbrock-**W** method of
+    order 3 (4 stages, embedded order 2): its order conditions hold whatever matrix stands in for J.
+
+    With `frozen_jacobian_tangents=True` (the default here) forward-mode tangents do not
+    differentiate J (no second derivatives of the vector field, no tangent of $W^{-1}$): they are
+    then this same W-method applied to the variational equation $\dot s = J s + f_p$ with the
+    matrix blockdiag(J, J) in place of the exact one, so they keep its third order where the
+    problem is smooth (`tests/test_solver.py`), at about a quarter of the cost of exact tangents
+    through `Rodas3` (the diagnosis's Jacobians: 78 s → 17 s on one benchmark dataset).
+
+    **Not the default anywhere, and why:** the dropped coupling $(\partial J/\partial z)\,s$ is
+    stiff wherever the plant's curvature is extreme (the power-law damping near zero torsion
+    rate, the friction step near zero speed). In free motion the tangents of the torsion
+    parameters (K1, cubic stiffness, kinematic error) are then 3–1 200 % off at rtol 1e-5 and do not
+    converge with the tolerance (`benchmarks/jacobian_accuracy.py --w-method`), and the
+    diagnosis, given such Jacobians (2026-11-27, `benchmarks/RESULTS.md`), no longer named a hidden kinematic error (bench seed 5000).
+    The primal solution is an ordinary 3rd-order Rosenbrock solve (not bit-identical to `Rodas3`'s).
+    """
+
+    frozen_jacobian_tangents: bool = eqx.field(static=True, default=True)
+    _gamma: ClassVar[float] = W_GAMMA
+    _alpha: ClassVar[tuple] = W_ALPHA
+    _gammas: ClassVar[tuple] = W_GAMMAS
+    _b: ClassVar[tuple] = W_B
+    _b_hat: ClassVar[tuple] = W_B_HAT
