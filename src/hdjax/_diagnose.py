@@ -167,9 +167,10 @@ def _all_columns(ctx: dict) -> list[_Column]:
     return cols
 
 
-def _candidate_columns(cols: list[_Column], name: str, orders) -> list[int]:
-    """Indices (into `cols`) of the parameters of candidate `name` (periodic: only `orders`)."""
-    return [j for j, c in enumerate(cols) if c.effect == name and (c.index is None or c.index + 1 in orders)]
+def _candidate_columns(cols: list[_Column], name: str, orders, *, offset: int = 0) -> list[int]:
+    """Indices of the parameters of candidate `name` (periodic: only `orders`): into `cols`, plus
+    `offset` (the number of base parameters: indices into the loop's vector z)."""
+    return [offset + j for j, c in enumerate(cols) if c.effect == name and (c.index is None or c.index + 1 in orders)]
 
 
 def _effect_map(cols: list[_Column]) -> Parameterisation:
@@ -571,7 +572,7 @@ def _torque_balance_route(loop: _Loop, traj, evidence: dict, drive: Drive, *, re
             f"(improved in {cv['n_improved']} of {cv['n_records']} records)")
         if not (cv["gain"] > TB_MIN_GAIN and rule.consistent(cv["improved_fraction"])):
             continue
-        jcols = [n_base + j for j in _candidate_columns(cols, name, [k])]  # sin, cos of order k
+        jcols = _candidate_columns(cols, name, [k], offset=n_base)  # sin, cos of order k
         scale = np.array([cols[j - n_base].scale for j in jcols])
         zs = loop.tile(loop.z)
         for e in range(loop.n_exp):
@@ -616,7 +617,7 @@ def _drop_torque_balance_lookalikes(tb_findings: list[dict], orders_of: dict, ca
         if twin not in remaining or k not in orders_of.get(twin, []):
             continue
         orders_of[twin] = [o for o in orders_of[twin] if o != k]
-        cand_idx[twin] = [n_base + j for j in _candidate_columns(cols, twin, orders_of[twin])]
+        cand_idx[twin] = _candidate_columns(cols, twin, orders_of[twin], offset=n_base)
         log(f"diagnose: {twin} [{k}] not screened: the torque balance named {f['effect']} [{k}]")
         if not orders_of[twin]:
             remaining.remove(twin)
@@ -1145,7 +1146,7 @@ def diagnose(
     evidence, orders = _evidence(batch, traj, m, modes, sigma, p_base, drive)
     orders_of, candidates = _screened_orders(evidence, orders, candidates, log)
     folds, fit_folds = _folds(modes, cross_validation)
-    cand_idx = {c: [n_base + j for j in _candidate_columns(cols, c, orders_of.get(c, ()))] for c in list(candidates) + model_form}
+    cand_idx = {c: _candidate_columns(cols, c, orders_of.get(c, ()), offset=n_base) for c in list(candidates) + model_form}
 
     remaining = list(candidates)
     loop.r, loop.r_raw = loop.simulate_each(loop.tile(loop.z))
