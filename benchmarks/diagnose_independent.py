@@ -10,7 +10,7 @@ effects and, for periodic effects, orders), false findings on clean datasets, wr
 the time per dataset.
 
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
-[--seeds 5000,5004] [--no-readapt-after-form] [--one-stage-periodic]`.
+[--seeds 5000,5004] [--no-readapt-after-form] [--one-stage-periodic] [--w-method-jacobians]`.
 """
 
 import argparse
@@ -31,7 +31,13 @@ use_host_devices()  # every CPU core simulates its share of the experiments (HDJ
 
 import numpy as np  # noqa: E402
 
-from hdjax import diagnose_effects as diagnose, identify_paper, load_dataset  # noqa: E402
+from hdjax import (  # noqa: E402
+    Ros34PW2,
+    diagnose_effects as diagnose,
+    identify_paper,
+    load_dataset,
+    plant_stiff_part,
+)
 from hdjax.bench import make_dataset  # noqa: E402
 
 EFFECTS = [
@@ -111,7 +117,11 @@ def main() -> int:
     ap.add_argument("--one-stage-periodic", action="store_true",
                     help="diagnose with two_stage_periodic=False (a periodic term's columns zeroed where it completes "
                          "no cycle, nothing re-fitted to what it does there; the default before 2026-11-27)")
+    ap.add_argument("--w-method-jacobians", action="store_true",
+                    help="Jacobians through Ros34PW2(stiff_part=plant_stiff_part): frozen-J tangents with the "
+                         "plant's stiff second derivatives kept (an option under evaluation, 2026-11-27)")
     args = ap.parse_args()
+    jacobian_solver = Ros34PW2(stiff_part=plant_stiff_part) if args.w_method_jacobians else None
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
     rows = []
     for case in plan(args.n, args.first):
@@ -127,7 +137,7 @@ def main() -> int:
         t0 = time.perf_counter()
         paper = identify_paper(exps, ds.drive)
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
-                     two_stage_periodic=not args.one_stage_periodic)
+                     two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver)
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
         right = set(found) == set(truth) and all(truth[k] == found[k] for k in truth if k in PERIODIC)

@@ -9,6 +9,7 @@ import pytest
 
 import hdjax
 from hdjax._solver import ALPHA, B_HAT, GAMMA, GAMMAS, B
+from helpers import hd2, sine_experiment
 
 # ------------------------------------------------------------------------------------------------
 # Coefficients (Hairer & Wanner, Solving ODEs II, §IV.7, order conditions for Rosenbrock methods)
@@ -271,3 +272,33 @@ def test_ros34pw2_fixed_step_order_three():
     orders = np.log2(errors[:-1] / errors[1:])
     # measured from n = 20: orders 3.26, 3.15, 3.09 (approaching 3 from above)
     assert np.all(np.abs(orders - 3.0) < 0.2), (errors, orders)
+
+
+def test_plant_stiff_part_carries_every_second_derivative_of_the_paper_models_states():
+    """`Ros34PW2(stiff_part=plant_stiff_part)` keeps the tangent of J through the transmitted
+    torque and eq. 9. In the paper's model those are the only terms of the plant that are
+    nonlinear in the state or depend on K1, Tst, α or the friction coefficients. The tangents of
+    these parameters must therefore equal the W-method's exact tangents (J not frozen) to
+    round-off. Without the correction they do not: that gap is what the correction exists for.
+    Free motion: where the frozen tangents fail (`benchmarks/RESULTS.md`, 2026-11-27)."""
+    p, drive = hd2()
+    exp = sine_experiment("free", amplitude=0.4, freq=3.0, duration=0.3)
+    names = ("K1", "Tst", "Tsp", "Tssp1")
+
+    def column(solver):
+        sim = hdjax.Simulator(solver=solver, rtol=1e-6, atol=1e-8)
+
+        def out(x):
+            q = p.replace(**{k: getattr(p, k) * (1.0 + x[j]) for j, k in enumerate(names)})
+            tr = hdjax.simulate(q, drive, exp, simulator=sim)
+            return jnp.stack([tr.torque, tr.motor_velocity])
+
+        return np.asarray(jax.jit(jax.jacfwd(out))(jnp.zeros(len(names))))
+
+    exact = column(hdjax.Ros34PW2(frozen_jacobian_tangents=False))
+    corrected = column(hdjax.Ros34PW2(stiff_part=hdjax.plant_stiff_part))
+    frozen = column(hdjax.Ros34PW2())
+    scale = np.linalg.norm(exact.reshape(-1, len(names)), axis=0)
+    gap = lambda J: np.linalg.norm((J - exact).reshape(-1, len(names)), axis=0) / scale  # noqa: E731
+    assert np.all(gap(corrected) < 1e-9), gap(corrected)
+    assert gap(frozen).max() > 1e-6, gap(frozen)

@@ -93,6 +93,7 @@ from ._plant import (
     Simulator as Simulator,
     Trajectory as Trajectory,
     initial_state as initial_state,
+    plant_stiff_part as plant_stiff_part,
     simulate as simulate,
     simulate_batch as simulate_batch,
 )

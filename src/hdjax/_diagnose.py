@@ -97,6 +97,7 @@ import dataclasses
 import math
 import time
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -934,9 +935,11 @@ def _describe_items(findings: list[dict], form_items: list[dict], final_effects:
 
 
 def _setup(p_base: Parameters, drive: Drive, experiments: list[Experiment], batch: Experiment, sigma, *, base_free,
-           effects: list[str], simulator: Simulator, jacobian_rtol: float, per_record_noise: bool, timing: dict, log):
+           effects: list[str], simulator: Simulator, jacobian_rtol: float, jacobian_solver, per_record_noise: bool,
+           timing: dict, log):
     """Every effect column (scaled from the data), the compiled problem (simulations at `simulator`'s
-    tolerance, Jacobians at `jacobian_rtol`: they only set Gauss–Newton directions, every accepted
+    tolerance, Jacobians at `jacobian_rtol`, with `jacobian_solver` where given and the simulator is
+    not the fixed-step `VelocityImplicit`: they only set Gauss–Newton directions, every accepted
     step and held-out figure is simulated) and the base model's simulation. Returns the `_Loop` at
     the base model (`effects` switched on at zero), the base trajectories, the parameter map and
     the data context."""
@@ -950,6 +953,8 @@ def _setup(p_base: Parameters, drive: Drive, experiments: list[Experiment], batc
     prob = _Problem(pmap=pmap, emap=_effect_map(cols), effects=_fixed_effect_settings(ctx, effects), drive=drive,
                     simulator=simulator, mesh=experiment_mesh() if jax.device_count() > 1 else None)
     loose = dataclasses.replace(simulator, rtol=jacobian_rtol, atol=jacobian_rtol * 1e-2)
+    if jacobian_solver is not None and not is_fixed_cost(simulator):
+        loose = dataclasses.replace(loose, solver=jacobian_solver)
     z0 = np.concatenate([np.asarray(pmap.to_vector(p_base)), np.zeros(len(cols))])
     t1 = time.perf_counter()
     traj = prob.trajectories(jnp.asarray(np.tile(z0, (n_exp, 1))), p_base, batch)
@@ -1071,6 +1076,7 @@ def diagnose(
     reuse_jacobian: bool = True,
     simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8),
     jacobian_rtol: float = 1e-5,
+    jacobian_solver: dfx.AbstractSolver | None = None,
     cross_validation: str = "leave_one_out",
     tb_route: bool = True,
     readapt_after_form: bool = True,
@@ -1087,6 +1093,9 @@ def diagnose(
     for that refit (a new one when the chord steps are still gaining), `confirm_top` candidates (best linearised held-out
     gain first) whose held-out gain is confirmed by simulation each round, `simulator` ODE
     numerics of every simulation, `jacobian_rtol` tolerance of the Jacobians (directions only),
+    `jacobian_solver` the ODE solver of the Jacobians (default None: the simulator's own; e.g.
+    `Ros34PW2(stiff_part=hdjax.plant_stiff_part)` for tangents about 2× cheaper, an option under
+    evaluation, see `hdjax._solver`),
     `cross_validation` "leave_one_out" (each held-out experiment predicted by the fit on all the
     others) or "two_fold" (by the fit on the other half). `readapt_after_form`: after model_form
     adjustments are adopted, re-estimate the noise model and re-fit base + adjustments from a fresh
@@ -1138,7 +1147,7 @@ def diagnose(
     # stage 2: every effect column, the compiled problem, the base simulation
     loop, traj, pmap, ctx = _setup(p_base, drive, experiments, batch, sigma, base_free=base_free,
                                    effects=list(candidates) + model_form, simulator=simulator, jacobian_rtol=jacobian_rtol,
-                                   per_record_noise=per_record_noise, timing=timing, log=log)
+                                   jacobian_solver=jacobian_solver, per_record_noise=per_record_noise, timing=timing, log=log)
     n_base, m, modes, cols = loop.n_base, loop.m, loop.modes, loop.cols
 
     # stage 3: evidence (residual spectra and covariate correlations of the base model), the orders

@@ -251,6 +251,25 @@ def _vector_field(t, y, args):
     return dy
 
 
+def plant_stiff_part(t, y, args):
+    """The part of `_vector_field` whose Jacobian changes fast or with the parameters: the transmitted
+    torque (spring, power-law damping near zero torsion rate, Dahl term) and eq. 9 near zero
+    speed (its smoothed sign and step), with the Dahl state; the current, cogging and the smooth
+    friction factors (thermal, position- and load-dependent) left out. For
+    `Ros34PW2(stiff_part=plant_stiff_part)`: its frozen-J tangents keep the second derivatives of these
+    terms only."""
+    del t
+    p, drive, _, free, _, geometry, effects, smoothing = args
+    wm = y[1]
+    _, _, rate, T = _outputs(p, drive, y, geometry, effects, smoothing)
+    viscous, coulomb, stribeck = friction_parts(p, wm, smoothing)
+    zero = jnp.zeros_like(wm)
+    dy = (zero, -(T / drive.gear_ratio + viscous + coulomb + stribeck) / p.Jeff, zero, free * T / drive.load_inertia)
+    if "rate_independent_hysteresis" in effects.active:
+        dy = dy + (dahl_rate(y[4], rate, effects, smoothing.torsion_rate_scale),)
+    return dy
+
+
 def _at_sample_times(step_ts, step_ys, time):
     """States at the sample instants, read off the saved solver steps (`SaveAt(t0=True, steps=True)`)
     of a solve whose steps were clipped to land on every sample instant.

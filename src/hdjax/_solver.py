@@ -56,6 +56,7 @@ class _Rosenbrock(dfx.AbstractAdaptiveSolver):
     state; the tableau is the subclass's."""
 
     frozen_jacobian_tangents: eqx.AbstractVar[bool]
+    stiff_part: eqx.AbstractVar[Callable | None]
 
     term_structure: ClassVar = dfx.AbstractTerm
     interpolation_cls: ClassVar[Callable[..., dfx.ThirdOrderHermitePolynomialInterpolation]] = (
@@ -95,6 +96,16 @@ class _Rosenbrock(dfx.AbstractAdaptiveSolver):
             # forward-mode tangents see J as a constant: they are this method applied to the
             # variational equation with the matrix blockdiag(J, J) (see `Ros34PW2`)
             J = jax.lax.stop_gradient(J)
+            stiff = self.stiff_part
+            if stiff is not None:
+                # ... except through `stiff_part`, the terms whose curvature is stiff: the tangent
+                # of their Jacobian is kept (the primal J is unchanged: Js − Js = 0)
+                def fs(z):
+                    dy, _ = ravel_pytree(stiff(z[-1], unravel(z[:-1]), args))
+                    return jnp.concatenate([dy, jnp.zeros((1,), dtype=dy.dtype)])
+
+                Js = jax.jacfwd(fs)(z0)
+                J = J + (Js - jax.lax.stop_gradient(Js))
         n = z0.shape[0]
         W = jnp.eye(n, dtype=z0.dtype) - (h * self._gamma) * J
         # the inverse of W, not its LU factors: forward-mode tangents of an inverse are two small
@@ -138,6 +149,7 @@ class Rodas3(_Rosenbrock):
     """
 
     frozen_jacobian_tangents: bool = eqx.field(static=True, default=False)
+    stiff_part: Callable | None = eqx.field(static=True, default=None)
     _gamma: ClassVar[float] = GAMMA
     _alpha: ClassVar[tuple] = ALPHA
     _gammas: ClassVar[tuple] = GAMMAS
@@ -156,16 +168,27 @@ class Ros34PW2(_Rosenbrock):
     problem is smooth (`tests/test_solver.py`), at about a quarter of the cost of exact tangents
     through `Rodas3` (the diagnosis's Jacobians: 78 s → 17 s on one benchmark dataset).
 
-    **Not the default anywhere, and why:** the dropped coupling $(\partial J/\partial z)\,s$ is
-    stiff wherever the plant's curvature is extreme (the power-law damping near zero torsion
-    rate, the friction step near zero speed). In free motion the tangents of the torsion
-    parameters (K1, cubic stiffness, kinematic error) are then 3–1 200 % off at rtol 1e-5 and do not
-    converge with the tolerance (`benchmarks/jacobian_accuracy.py --w-method`), and the
-    diagnosis, given such Jacobians (2026-11-27, `benchmarks/RESULTS.md`), no longer named a hidden kinematic error (bench seed 5000).
+    **Frozen tangents alone are not enough for the plant:** the dropped coupling
+    $(\partial J/\partial z)\,s$ is stiff wherever the plant's curvature is extreme (the power-law
+    damping near zero torsion rate, the friction step near zero speed). In free motion the
+    tangents of the torsion parameters (K1, cubic stiffness, kinematic error) were then 3–1 200 %
+    off at rtol 1e-5 (`benchmarks/jacobian_accuracy.py --w-method`), and a diagnosis given such
+    Jacobians no longer named a hidden kinematic error (bench seed 5000; `benchmarks/RESULTS.md`,
+    2026-11-27).
+
+    **`stiff_part`** (a function like a diffrax vector field, `(t, y, args) -> dy`): the tangent of
+    *its* Jacobian is kept, so the second derivatives of those terms are exact and only the rest is
+    frozen. `hdjax.plant_stiff_part` holds the plant's transmitted torque and eq. 9 (everything
+    nonlinear in the state in the paper's model, so there the tangents equal the exact ones,
+    `tests/test_solver.py`); the current, cogging and the smooth friction factors stay frozen.
+    With it the diagnosis names seed 5000's kinematic error again. Opt-in
+    (`diagnose(..., jacobian_solver=Ros34PW2(stiff_part=plant_stiff_part))`), under evaluation.
+
     The primal solution is an ordinary 3rd-order Rosenbrock solve (not bit-identical to `Rodas3`'s).
     """
 
     frozen_jacobian_tangents: bool = eqx.field(static=True, default=True)
+    stiff_part: Callable | None = eqx.field(static=True, default=None)
     _gamma: ClassVar[float] = W_GAMMA
     _alpha: ClassVar[tuple] = W_ALPHA
     _gammas: ClassVar[tuple] = W_GAMMAS
