@@ -12,9 +12,10 @@ for the paper model alone and with one SPEC §4 effect (or §4b `sensor_bandwidt
 typical magnitude.
 
 Columns: K1 (relative change) and the effect's own parameter. Usage:
-`python benchmarks/jacobian_accuracy.py [record index ...] [--frozen | --w-method]` (default: a locked
-and two free records; exact tangents through `Rodas3`). `--frozen`: `Rodas3` with tangents that hold
-each step's J constant; `--w-method`: `Ros34PW2`, whose such tangents keep its order.
+`python benchmarks/jacobian_accuracy.py [record index ...] [--frozen | --w-method [--stiff]]` (default: a
+locked and two free records; exact tangents through `Rodas3`). `--frozen`: `Rodas3` with tangents that
+hold each step's J constant; `--w-method`: `Ros34PW2`, whose such tangents keep its order; `--stiff`:
+with the J-tangent of `hdjax.plant_stiff_part` kept.
 """
 
 import sys

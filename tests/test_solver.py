@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import hdjax
-from hdjax._solver import ALPHA, B_HAT, GAMMA, GAMMAS, B
+from hdjax._solver import GAMMA, RODAS3, ROS34PW2
 from helpers import hd2, sine_experiment
 
 # ------------------------------------------------------------------------------------------------
@@ -18,14 +18,14 @@ from helpers import hd2, sine_experiment
 S = 4
 
 
-def _tableau():
+def _tableau(tab=RODAS3):
     a = np.zeros((S, S))
     g = np.zeros((S, S))
     for i in range(S):
-        assert len(ALPHA[i]) == len(GAMMAS[i]) == i
-        a[i, :i] = ALPHA[i]
-        g[i, :i] = GAMMAS[i]
-    return a, g, np.array(B), np.array(B_HAT)
+        assert len(tab.alpha[i]) == len(tab.gammas[i]) == i
+        a[i, :i] = tab.alpha[i]
+        g[i, :i] = tab.gammas[i]
+    return a, g, np.array(tab.b), np.array(tab.b_hat)
 
 
 def test_order_conditions_up_to_three():
@@ -61,10 +61,10 @@ def test_stiffly_accurate():
     assert bh[2] == GAMMA and bh[3] == 0.0
 
 
-def _stability_function(z):
-    a, g, b, _ = _tableau()
+def _stability_function(z, tab=RODAS3):
+    a, g, b, _ = _tableau(tab)
     # y' = λy, z = hλ: (1 − zγ) k_i = z (y0 + Σ_j β_ij k_j)
-    k = np.linalg.solve((1 - z * GAMMA) * np.eye(S) - z * (a + g), z * np.ones(S))
+    k = np.linalg.solve((1 - z * tab.gamma) * np.eye(S) - z * (a + g), z * np.ones(S))
     return 1.0 + b @ k
 
 
@@ -199,25 +199,14 @@ def test_prothero_robinson_error_uniform_in_stiffness():
 # ------------------------------------------------------------------------------------------------
 
 
-def _w_stability_function(z):
-    from hdjax._solver import W_ALPHA, W_B, W_GAMMA, W_GAMMAS
-
-    a, g = np.zeros((S, S)), np.zeros((S, S))
-    for i in range(S):
-        a[i, :i], g[i, :i] = W_ALPHA[i], W_GAMMAS[i]
-    k = np.linalg.solve((1 - z * W_GAMMA) * np.eye(S) - z * (a + g), z * np.ones(S))
-    return 1.0 + np.array(W_B) @ k
-
-
 def test_ros34pw2_coefficients_are_l_stable_and_stiffly_accurate():
-    from hdjax._solver import W_ALPHA, W_B, W_GAMMA, W_GAMMAS
-
+    a, g, b, _ = _tableau(ROS34PW2)
     # stiffly accurate: b_j = α_4j + γ_4j (j < 4) and b_4 = γ, as PETSc's RA34PW2 table has it
-    np.testing.assert_allclose(W_B[:3], np.add(W_ALPHA[3], W_GAMMAS[3]), rtol=0, atol=1e-15)
-    assert W_B[3] == W_GAMMA
+    np.testing.assert_allclose(b[:3], (a + g)[-1, :3], rtol=0, atol=1e-15)
+    assert b[3] == ROS34PW2.gamma
     y = np.concatenate([np.logspace(-3, 6, 400), -np.logspace(-3, 6, 400)])
-    assert np.max(np.abs([_w_stability_function(1j * v) for v in y])) <= 1.0 + 1e-12
-    assert abs(_w_stability_function(-1e8)) < 1e-7
+    assert np.max(np.abs([_stability_function(1j * v, ROS34PW2) for v in y])) <= 1.0 + 1e-12
+    assert abs(_stability_function(-1e8, ROS34PW2)) < 1e-7
 
 
 def _two_states(t, y, p):

@@ -22,7 +22,7 @@ step control. Order conditions up to 3 and stiff accuracy are checked in `tests/
 """
 
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import diffrax as dfx
 import equinox as eqx
@@ -36,19 +36,34 @@ GAMMAS = ((), (1.0,), (-0.25, -0.25), (1.0 / 12.0, 1.0 / 12.0, -2.0 / 3.0))
 B = (5.0 / 6.0, -1.0 / 6.0, -1.0 / 6.0, 0.5)
 B_HAT = (0.75, -0.25, 0.5, 0.0)
 
+
+class Tableau(NamedTuple):
+    """A 4-stage Rosenbrock method in Hairer–Wanner form: γ, α_ij, γ_ij (j < i), b, embedded b̂."""
+
+    gamma: float
+    alpha: tuple
+    gammas: tuple
+    b: tuple
+    b_hat: tuple
+
+
+RODAS3 = Tableau(GAMMA, ALPHA, GAMMAS, B, B_HAT)
+
 # ROS34PW2 (Rang & Angermann 2005, BIT 45; coefficients as PETSc's `TSROSWRA34PW2` lists them):
 # a 4-stage, stiffly accurate, L-stable Rosenbrock-W method of order 3 whose order conditions hold
 # for *any* matrix in place of J (a W-method), embedded order 2.
-W_GAMMA = 4.3586652150845900e-01
-W_ALPHA = ((), (8.7173304301691801e-01,), (8.4457060015369423e-01, -1.1299064236484185e-01), (0.0, 0.0, 1.0))
-W_GAMMAS = (
-    (),
-    (-8.7173304301691801e-01,),
-    (-9.0338057013044082e-01, 5.4180672388095326e-02),
-    (2.4212380706095346e-01, -1.2232505839045147e00, 5.4526025533510214e-01),
+ROS34PW2 = Tableau(
+    gamma=4.3586652150845900e-01,
+    alpha=((), (8.7173304301691801e-01,), (8.4457060015369423e-01, -1.1299064236484185e-01), (0.0, 0.0, 1.0)),
+    gammas=(
+        (),
+        (-8.7173304301691801e-01,),
+        (-9.0338057013044082e-01, 5.4180672388095326e-02),
+        (2.4212380706095346e-01, -1.2232505839045147e00, 5.4526025533510214e-01),
+    ),
+    b=(2.4212380706095346e-01, -1.2232505839045147e00, 1.5452602553351020e00, 4.3586652150845900e-01),
+    b_hat=(3.7810903145819369e-01, -9.6042292212423178e-02, 5.0000000000000000e-01, 2.1793326075422950e-01),
 )
-W_B = (2.4212380706095346e-01, -1.2232505839045147e00, 1.5452602553351020e00, 4.3586652150845900e-01)
-W_B_HAT = (3.7810903145819369e-01, -9.6042292212423178e-02, 5.0000000000000000e-01, 2.1793326075422950e-01)
 
 
 class _Rosenbrock(dfx.AbstractAdaptiveSolver):
@@ -62,11 +77,7 @@ class _Rosenbrock(dfx.AbstractAdaptiveSolver):
     interpolation_cls: ClassVar[Callable[..., dfx.ThirdOrderHermitePolynomialInterpolation]] = (
         dfx.ThirdOrderHermitePolynomialInterpolation
     )
-    _gamma: ClassVar[float]
-    _alpha: ClassVar[tuple]
-    _gammas: ClassVar[tuple]
-    _b: ClassVar[tuple]
-    _b_hat: ClassVar[tuple]
+    _tableau: ClassVar[Tableau]
 
     def order(self, terms):
         del terms
@@ -91,6 +102,7 @@ class _Rosenbrock(dfx.AbstractAdaptiveSolver):
             return jnp.concatenate([dy, jnp.ones((1,), dtype=dy.dtype)])
 
         z0 = jnp.concatenate([y0_flat, jnp.reshape(jnp.asarray(t0, dtype=y0_flat.dtype), (1,))])
+        tab = self._tableau
         J = jax.jacfwd(f)(z0)
         if self.frozen_jacobian_tangents:
             # forward-mode tangents see J as a constant: they are this method applied to the
@@ -107,7 +119,7 @@ class _Rosenbrock(dfx.AbstractAdaptiveSolver):
                 Js = jax.jacfwd(fs)(z0)
                 J = J + (Js - jax.lax.stop_gradient(Js))
         n = z0.shape[0]
-        W = jnp.eye(n, dtype=z0.dtype) - (h * self._gamma) * J
+        W = jnp.eye(n, dtype=z0.dtype) - (h * tab.gamma) * J
         # the inverse of W, not its LU factors: forward-mode tangents of an inverse are two small
         # matmuls (-W⁻¹ dW W⁻¹), those of `lu_factor` triangular solves and masks; the forward-mode
         # Jacobian of the HD2 fit's residuals is 1.5-1.7x faster this way (benchmarks/RESULTS.md)
@@ -117,12 +129,12 @@ class _Rosenbrock(dfx.AbstractAdaptiveSolver):
             zi = z0
             corr = jnp.zeros_like(z0)
             for j in range(i):
-                zi = zi + self._alpha[i][j] * ks[j]
-                corr = corr + self._gammas[i][j] * ks[j]
+                zi = zi + tab.alpha[i][j] * ks[j]
+                corr = corr + tab.gammas[i][j] * ks[j]
             rhs = h * f(zi) + h * (J @ corr)
             ks.append(W_inv @ rhs)
-        z1 = z0 + sum(b * k for b, k in zip(self._b, ks))
-        z1_hat = z0 + sum(b * k for b, k in zip(self._b_hat, ks))
+        z1 = z0 + sum(b * k for b, k in zip(tab.b, ks))
+        z1_hat = z0 + sum(b * k for b, k in zip(tab.b_hat, ks))
         y1 = unravel(z1[:-1])
         y_error = unravel((z1 - z1_hat)[:-1])
         k0 = unravel(h * f(z0)[:-1])  # pyright: ignore[reportArgumentType]  h · Array is an Array (jax's __array_priority__)
@@ -146,15 +158,12 @@ class Rodas3(_Rosenbrock):
       Rodas3's order conditions need the exact J, so such tangents are only first order (relative
       errors of 3e-3 to 9e-2 at rtol 1e-5 in `benchmarks/jacobian_accuracy.py --frozen`; see
       `Ros34PW2`). Default False: tangents are the exact derivative of the discrete solve.
+    - `stiff_part`: with frozen tangents, terms whose J-tangent is kept (see `Ros34PW2`).
     """
 
     frozen_jacobian_tangents: bool = eqx.field(static=True, default=False)
     stiff_part: Callable | None = eqx.field(static=True, default=None)
-    _gamma: ClassVar[float] = GAMMA
-    _alpha: ClassVar[tuple] = ALPHA
-    _gammas: ClassVar[tuple] = GAMMAS
-    _b: ClassVar[tuple] = B
-    _b_hat: ClassVar[tuple] = B_HAT
+    _tableau: ClassVar[Tableau] = RODAS3
 
 
 class Ros34PW2(_Rosenbrock):
@@ -189,8 +198,4 @@ class Ros34PW2(_Rosenbrock):
 
     frozen_jacobian_tangents: bool = eqx.field(static=True, default=True)
     stiff_part: Callable | None = eqx.field(static=True, default=None)
-    _gamma: ClassVar[float] = W_GAMMA
-    _alpha: ClassVar[tuple] = W_ALPHA
-    _gammas: ClassVar[tuple] = W_GAMMAS
-    _b: ClassVar[tuple] = W_B
-    _b_hat: ClassVar[tuple] = W_B_HAT
+    _tableau: ClassVar[Tableau] = ROS34PW2
