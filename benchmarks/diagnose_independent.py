@@ -10,7 +10,7 @@ effects and, for periodic effects, orders), false findings on clean datasets, wr
 the time per dataset.
 
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
-[--seeds 5000,5004] [--no-readapt-after-form] [--one-stage-periodic] [--w-method-jacobians]`.
+[--seeds 5000,5004] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]`.
 """
 
 import argparse
@@ -117,11 +117,11 @@ def main() -> int:
     ap.add_argument("--one-stage-periodic", action="store_true",
                     help="diagnose with two_stage_periodic=False (a periodic term's columns zeroed where it completes "
                          "no cycle, nothing re-fitted to what it does there; the default before 2026-11-27)")
-    ap.add_argument("--w-method-jacobians", action="store_true",
-                    help="Jacobians through Ros34PW2(stiff_part=plant_stiff_part): frozen-J tangents with the "
-                         "plant's stiff second derivatives kept (an option under evaluation, 2026-11-27)")
+    ap.add_argument("--rodas3-jacobians", action="store_true",
+                    help="Jacobians with exact tangents through the simulator's Rodas3 (jacobian_solver=None; the "
+                         "default until the twentieth session, 2026-11-27) instead of Ros34PW2(stiff_part=plant_stiff_part)")
     args = ap.parse_args()
-    jacobian_solver = Ros34PW2(stiff_part=plant_stiff_part) if args.w_method_jacobians else None
+    jacobian_solver = None if args.rodas3_jacobians else Ros34PW2(stiff_part=plant_stiff_part)
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
     rows = []
     for case in plan(args.n, args.first):

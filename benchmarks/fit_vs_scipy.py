@@ -265,6 +265,9 @@ def main() -> None:
     ap.add_argument("--hdjax-substeps", type=int, default=0,
                     help="hdjax side on the fixed-step hdjax.VelocityImplicit with this many substeps per sample "
                          "(the exact model: sticking and |rate|^alpha unsmoothed); 0 = Rodas3 (default)")
+    ap.add_argument("--hdjax-w-method", action="store_true",
+                    help="hdjax side on the adaptive Rosenbrock-W method Ros34PW2 with the paper model's stiff part "
+                         "(hdjax.plant_stiff_part: exact W-method tangents, no Hessian of the rest) instead of Rodas3")
     ap.add_argument("--check-jacobian", action="store_true",
                     help="print the CasADi Jacobian against central differences at the start point (untimed)")
     ap.add_argument("--casadi-options", type=json.loads, default=dict(CASADI_OPTIONS),
@@ -297,6 +300,9 @@ def main() -> None:
     simulator = hdjax.Simulator(rtol=args.ode_rtol, atol=args.ode_rtol * 1e-2)  # atol as in simulate_scipy
     if args.hdjax_substeps > 0:
         simulator = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=args.hdjax_substeps))
+    elif args.hdjax_w_method:
+        simulator = hdjax.Simulator(solver=hdjax.Ros34PW2(stiff_part=hdjax.plant_stiff_part), rtol=args.ode_rtol,
+                                    atol=args.ode_rtol * 1e-2)
     # the reference must simulate the same model: compare both simulations at the start point
     tr = eqx.filter_jit(hdjax.simulate_batch)(p0, ds.drive, batch, simulator=simulator)
     worst, where = 0.0, ""

@@ -180,15 +180,19 @@ def test_fit_cutoff_reaches_the_paper_identification_of_every_command(command, m
 
 
 def test_fit_trajectory_solver_option_builds_the_named_simulator():
-    """`fit.trajectory.solver` picks the trajectory fit's numerics: the adaptive Rodas3 default or
-    the fixed-step implicit velocity-level stepper with `substeps`; a bad value names its key."""
+    """`fit.trajectory.solver` picks the trajectory fit's numerics: the adaptive Rosenbrock-W
+    default (`Ros34PW2` with the plant's stiff part), adaptive Rodas3, or the fixed-step implicit
+    velocity-level stepper with `substeps`; a bad value names its key."""
     import hdjax
     from hdjax._identify import DEFAULTS, trajectory_simulator
 
     opts = dict(DEFAULTS["trajectory"])
-    assert opts["solver"] == "rodas3"
+    assert opts["solver"] == "ros34pw2"
     sim = trajectory_simulator(opts)
-    assert sim.rtol == opts["rtol"] and not isinstance(sim.solver, hdjax.VelocityImplicit)
+    assert sim.rtol == opts["rtol"] and isinstance(sim.solver, hdjax.Ros34PW2)
+    assert sim.solver.stiff_part is hdjax.plant_stiff_part
+    sim = trajectory_simulator({**opts, "solver": "rodas3"})
+    assert sim.rtol == opts["rtol"] and isinstance(sim.solver, hdjax.Rodas3)
     sim = trajectory_simulator({**opts, "solver": "velocity_implicit", "substeps": 2})
     assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.substeps == 2
     with pytest.raises(ValueError, match=r"fit\.trajectory\.solver.*velocity_implicit"):

@@ -15,7 +15,8 @@ from ._fit import DEFAULT_FREE, fit_parameters, fit_per_experiment, nrmse
 from ._io import atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS
 from ._paper_id import identify_paper
-from ._plant import Simulator, simulate_batch
+from ._plant import Simulator, plant_stiff_part, simulate_batch
+from ._solver import Ros34PW2
 from ._stepper import VelocityImplicit
 
 FRICTION_NAMES = ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn")
@@ -33,22 +34,27 @@ DEFAULTS = {
         "step_se_tol": 0.1,
         "per_experiment": True,
         "per_experiment_max_steps": 12,
-        "solver": "rodas3",
+        "solver": "ros34pw2",
         "substeps": 4,
     },
 }
 
 
-SOLVERS = ("rodas3", "velocity_implicit")
+SOLVERS = ("rodas3", "ros34pw2", "velocity_implicit")
 
 
 def trajectory_simulator(trajectory: dict) -> Simulator:
     """The simulator of the trajectory fit from the `fit.trajectory` options: `solver` "rodas3"
-    (adaptive Rosenbrock on the smoothed model, tolerance `rtol`) or "velocity_implicit" (fixed-step
+    (adaptive Rosenbrock on the smoothed model, tolerance `rtol`), "ros34pw2" (the same model on the
+    adaptive Rosenbrock-W method `hdjax.Ros34PW2` with the plant's stiff part: its LM Jacobians skip
+    the second derivatives of the current and the smooth factors) or "velocity_implicit" (fixed-step
     TR-BDF2 with exact sticking, `substeps` steps per sample; see `hdjax.VelocityImplicit`)."""
     name = trajectory["solver"]
     if name == "rodas3":
         return Simulator(rtol=float(trajectory["rtol"]), atol=float(trajectory["rtol"]) * 1e-2)
+    if name == "ros34pw2":
+        return Simulator(solver=Ros34PW2(stiff_part=plant_stiff_part), rtol=float(trajectory["rtol"]),
+                         atol=float(trajectory["rtol"]) * 1e-2)
     if name == "velocity_implicit":
         substeps = trajectory["substeps"]
         if not isinstance(substeps, int) or isinstance(substeps, bool) or substeps < 1:
