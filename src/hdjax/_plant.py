@@ -235,17 +235,24 @@ def _first_order_lag(x: Float[Array, " time"], tau, dt) -> Float[Array, " time"]
     return jnp.concatenate([x[:1], ys])
 
 
-def _vector_field(t, y, args):
+def _vector_field(t, y, args, *, stiff_only: bool = False):
+    """The plant's ODE: state (torsion, wave-generator velocity, output angle, output velocity[,
+    Dahl state]). `stiff_only`: only the terms of `plant_stiff_part` (no current, cogging or
+    friction factors; the linear kinematic rows zero)."""
     p, drive, current, free, start_time, geometry, effects, smoothing = args
     q, wm, th_o, wo = y[:4]
     th_m, torsion, rate, T = _outputs(p, drive, y, geometry, effects, smoothing)
-    i = current.evaluate(t - effects.delay) if "input_delay" in effects.active else current.evaluate(t)
-    drive_torque = drive.torque_constant * i + effects.periodic("cogging", th_m)
-    Tf = _friction(p, drive, wm, th_m, T, start_time + t, effects, smoothing)
+    if stiff_only:
+        drive_torque = jnp.zeros_like(wm)
+        Tf = sum(friction_parts(p, wm, smoothing))
+    else:
+        i = current.evaluate(t - effects.delay) if "input_delay" in effects.active else current.evaluate(t)
+        drive_torque = drive.torque_constant * i + effects.periodic("cogging", th_m)
+        Tf = _friction(p, drive, wm, th_m, T, start_time + t, effects, smoothing)
     dwm = (drive_torque - T / drive.gear_ratio - Tf) / p.Jeff
-    dq = wm / drive.gear_ratio - wo
     dwo = free * T / drive.load_inertia
-    dy = (dq, dwm, wo, dwo)
+    zero = jnp.zeros_like(wm)
+    dy = (zero, dwm, zero, dwo) if stiff_only else (wm / drive.gear_ratio - wo, dwm, wo, dwo)
     if "rate_independent_hysteresis" in effects.active:
         dy = dy + (dahl_rate(y[4], rate, effects, smoothing.torsion_rate_scale),)
     return dy
@@ -254,20 +261,11 @@ def _vector_field(t, y, args):
 def plant_stiff_part(t, y, args):
     """The part of `_vector_field` whose Jacobian changes fast or with the parameters: the transmitted
     torque (spring, power-law damping near zero torsion rate, Dahl term) and eq. 9 near zero
-    speed (its smoothed sign and step), with the Dahl state; the current, cogging and the smooth
-    friction factors (thermal, position- and load-dependent) left out. For
-    `Ros34PW2(stiff_part=plant_stiff_part)`: its frozen-J tangents keep the second derivatives of these
-    terms only."""
-    del t
-    p, drive, _, free, _, geometry, effects, smoothing = args
-    wm = y[1]
-    _, _, rate, T = _outputs(p, drive, y, geometry, effects, smoothing)
-    viscous, coulomb, stribeck = friction_parts(p, wm, smoothing)
-    zero = jnp.zeros_like(wm)
-    dy = (zero, -(T / drive.gear_ratio + viscous + coulomb + stribeck) / p.Jeff, zero, free * T / drive.load_inertia)
-    if "rate_independent_hysteresis" in effects.active:
-        dy = dy + (dahl_rate(y[4], rate, effects, smoothing.torsion_rate_scale),)
-    return dy
+    speed (its smoothed sign and step), with the Dahl state; the current, cogging, the smooth
+    friction factors (thermal, position- and load-dependent) and the linear kinematic rows left out.
+    For `Ros34PW2(stiff_part=plant_stiff_part)`: its frozen-J tangents keep the second derivatives
+    of these terms only."""
+    return _vector_field(t, y, args, stiff_only=True)
 
 
 def _at_sample_times(step_ts, step_ys, time):
