@@ -32,11 +32,10 @@ use_host_devices()  # every CPU core simulates its share of the experiments (HDJ
 import numpy as np  # noqa: E402
 
 from hdjax import (  # noqa: E402
-    Ros34PW2,
+    PLANT_W_METHOD,
     diagnose_effects as diagnose,
     identify_paper,
     load_dataset,
-    plant_stiff_part,
 )
 from hdjax.bench import make_dataset  # noqa: E402
 
@@ -121,7 +120,7 @@ def main() -> int:
                     help="Jacobians with exact tangents through the simulator's Rodas3 (jacobian_solver=None; the "
                          "default until the twentieth session, 2026-11-27) instead of Ros34PW2(stiff_part=plant_stiff_part)")
     args = ap.parse_args()
-    jacobian_solver = None if args.rodas3_jacobians else Ros34PW2(stiff_part=plant_stiff_part)
+    jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
     rows = []
     for case in plan(args.n, args.first):

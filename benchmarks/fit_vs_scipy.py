@@ -301,7 +301,7 @@ def main() -> None:
     if args.hdjax_substeps > 0:
         simulator = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=args.hdjax_substeps))
     elif args.hdjax_w_method:
-        simulator = hdjax.Simulator(solver=hdjax.Ros34PW2(stiff_part=hdjax.plant_stiff_part), rtol=args.ode_rtol,
+        simulator = hdjax.Simulator(solver=hdjax.PLANT_W_METHOD, rtol=args.ode_rtol,
                                     atol=args.ode_rtol * 1e-2)
     # the reference must simulate the same model: compare both simulations at the start point
     tr = eqx.filter_jit(hdjax.simulate_batch)(p0, ds.drive, batch, simulator=simulator)

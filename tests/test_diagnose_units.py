@@ -3,7 +3,7 @@
 import numpy as np
 
 from hdjax import Significance
-from hdjax._diagnose import _judge, _solve_normal
+from hdjax._diagnose import _FoldFits, _judge, _solve_normal
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -69,6 +69,58 @@ def test_significance_needs_both_halves_and_the_effect_size():
     before, after = _residuals([0.03] * 4 + [0.0] * 4)  # below min_relative_gain = 5 %
     s = _judge(before, after, FOLDS, MODES, 2, Significance())
     assert not s["significant"] and _judge(before, after, FOLDS, MODES, 2, Significance(min_relative_gain=0.01))["significant"]
+
+
+def test_significance_takes_a_drift_by_its_between_record_share():
+    """A drift over the session (thermal drift) gains little of the whole error but most of what a
+    free parameter per record would: with its between-record share it passes the effect size."""
+    before, after = _residuals([0.0] * 4 + [0.02] * 4)  # free tests 2 %, below min_relative_gain
+    assert not _judge(before, after, FOLDS, MODES, 1, Significance())["significant"]
+    assert _judge(before, after, FOLDS, MODES, 1, Significance(), drift_share=0.8)["significant"]
+    assert not _judge(before, after, FOLDS, MODES, 1, Significance(), drift_share=0.3)["significant"]
+
+
+def _drift_fold_fits(theta, start_times, *, seed=0, n=300):
+    """Linear leave-one-record-out fold fits of 8 records whose residual is what a per-record
+    viscous-friction change `theta[e]` leaves (column 0: the viscous torque's effect, a random
+    profile per record) plus unit noise; column 1 is a thermal-drift term, column 0 × exp(−t/τ)."""
+    rng = np.random.default_rng(seed)
+    n_exp = len(theta)
+    v = rng.normal(size=(n_exp, 1, n)).cumsum(axis=-1) / np.sqrt(n)  # slow, record-specific
+    g = np.exp(-np.asarray(start_times) / 600.0)
+    J = np.stack([v, v * g[:, None, None]], axis=-1)
+    r = -np.asarray(theta)[:, None, None] * v + 0.05 * rng.normal(size=(n_exp, 1, n))
+    Jf, rf = J.reshape(n_exp, -1, 2), r.reshape(n_exp, -1)
+    return _FoldFits(z=np.zeros(2), r=r, J=J, col_of={0: 0, 1: 1}, n_base=1, fit_folds=np.arange(n_exp),
+                     A_exp=np.einsum("eti,etj->eij", Jf, Jf), b_exp=np.einsum("eti,et->ei", Jf, rf))
+
+
+def test_between_record_share_tells_a_drift_from_record_to_record_scatter():
+    """The share is what the drift term predicts of each held-out record's own viscous change, over
+    what that record's own fit gains: about 1 for a drift with session time; for a scatter of the
+    same size that does not follow it (orthogonal to 1 and exp(−t/τ) over the records), mostly
+    below 0. Over 20 draws the rule as `_drift_share` applies it (share ≥ `min_drift_share` and
+    β > 0 in every held-out fit) takes every drift and no scatter; the share alone passed one
+    scatter draw of 20 (0.54), whose held-out β were all negative."""
+    starts = np.array([60.0, 900.0, 300.0, 1400.0, 150.0, 1100.0, 600.0, 450.0])
+    g = np.exp(-starts / 600.0)
+    basis = np.stack([np.ones_like(g), g], axis=1)
+    min_share = Significance().min_drift_share
+    shares = {"drift": [], "scatter": []}
+    passes = {"drift": 0, "scatter": 0}
+    for seed in range(20):
+        u = np.random.default_rng(seed).normal(size=g.size)
+        u -= basis @ np.linalg.lstsq(basis, u, rcond=None)[0]
+        scatter = g.mean() + u * np.std(g) / np.std(u)
+        for kind, theta in (("drift", 0.3 * g), ("scatter", 0.3 * scatter)):
+            ff = _drift_fold_fits(theta, starts, seed=seed)
+            _, pred_before = ff.steps([])
+            zs, pred = ff.steps([1])
+            share = ff.between_record_share(pred_before, pred, [0], np.ones(len(starts), bool))
+            shares[kind].append(share)
+            passes[kind] += bool(share >= min_share and np.all(zs[:, 1] > 0))
+    assert min(shares["drift"]) > 0.95 and np.median(shares["scatter"]) < 0.0, shares
+    assert passes == {"drift": 20, "scatter": 0}, (passes, shares)
 
 
 def test_friction_rules_need_every_fold_up_to_four_and_all_but_one_of_five():

@@ -90,6 +90,7 @@ from ._model import (
 from ._paper_id import PAPER_HD2_SI as PAPER_HD2_SI, PaperIdentification as PaperIdentification, identify_paper as identify_paper
 from ._parameterisation import Entry as Entry, Parameterisation as Parameterisation, parameterisation as parameterisation
 from ._plant import (
+    PLANT_W_METHOD as PLANT_W_METHOD,
     Simulator as Simulator,
     Trajectory as Trajectory,
     initial_state as initial_state,

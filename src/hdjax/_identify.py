@@ -15,8 +15,8 @@ from ._fit import DEFAULT_FREE, fit_parameters, fit_per_experiment, nrmse
 from ._io import atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS
 from ._paper_id import identify_paper
-from ._plant import Simulator, plant_stiff_part, simulate_batch
-from ._solver import Ros34PW2
+from ._plant import PLANT_W_METHOD, Simulator, simulate_batch
+from ._solver import Rodas3
 from ._stepper import VelocityImplicit
 
 FRICTION_NAMES = ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn")
@@ -50,11 +50,10 @@ def trajectory_simulator(trajectory: dict) -> Simulator:
     the second derivatives of the current and the smooth factors) or "velocity_implicit" (fixed-step
     TR-BDF2 with exact sticking, `substeps` steps per sample; see `hdjax.VelocityImplicit`)."""
     name = trajectory["solver"]
-    if name == "rodas3":
-        return Simulator(rtol=float(trajectory["rtol"]), atol=float(trajectory["rtol"]) * 1e-2)
-    if name == "ros34pw2":
-        return Simulator(solver=Ros34PW2(stiff_part=plant_stiff_part), rtol=float(trajectory["rtol"]),
-                         atol=float(trajectory["rtol"]) * 1e-2)
+    if name in ("rodas3", "ros34pw2"):
+        rtol = float(trajectory["rtol"])
+        solver = Rodas3() if name == "rodas3" else PLANT_W_METHOD
+        return Simulator(solver=solver, rtol=rtol, atol=rtol * 1e-2)
     if name == "velocity_implicit":
         substeps = trajectory["substeps"]
         if not isinstance(substeps, int) or isinstance(substeps, bool) or substeps < 1:

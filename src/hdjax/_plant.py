@@ -38,7 +38,7 @@ from ._sharding import (
     shard_experiments,
 )
 from ._smooth import smooth_sign, smooth_signed_power
-from ._solver import Rodas3
+from ._solver import Rodas3, Ros34PW2
 from ._stepper import VelocityImplicit, implicit_trajectory
 
 
@@ -266,6 +266,11 @@ def plant_stiff_part(t, y, args):
     For `Ros34PW2(stiff_part=plant_stiff_part)`: its frozen-J tangents keep the second derivatives
     of these terms only."""
     return _vector_field(t, y, args, stiff_only=True)
+
+
+#: The Rosenbrock-W method with the plant's stiff part, `Ros34PW2(stiff_part=plant_stiff_part)`:
+#: the solver of the diagnosis's Jacobians and of the fit command's trajectory fit (`ros34pw2`).
+PLANT_W_METHOD = Ros34PW2(stiff_part=plant_stiff_part)
 
 
 def _at_sample_times(step_ts, step_ys, time):

@@ -30,13 +30,17 @@ class Significance:
     that mode that must improve; the chance level of a fit with k parameters is
     `chance_per_parameter`·k + `chance_offset` (in Δχ²), which the held-out gain must exceed, also
     without the experiment that gains most; `mode_trade` (`MODE_TRADE`) how much of its gain on one
-    kind of test a candidate may lose on the other."""
+    kind of test a candidate may lose on the other; `min_drift_share` the effect size of a drift over
+    the session (`hdjax._diagnose.DRIFT_EFFECTS`) in place of `min_relative_gain`: the share of what
+    a free value per record of the base parameters it changes would gain held out that the drift
+    term gains."""
 
     min_relative_gain: float = 0.05
     min_improved_fraction: float = 0.75
     chance_per_parameter: float = 10.0
     chance_offset: float = 50.0
     mode_trade: float = MODE_TRADE
+    min_drift_share: float = 0.5
 
     def chance(self, k: int) -> float:
         """Δχ² a fit of `k` parameters gains by chance (sensor-noise units)."""
