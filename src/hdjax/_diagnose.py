@@ -387,7 +387,6 @@ class _Loop:
     n_base: int
     unresolved: dict  # column → (exp,) bool: periodic term completes no cycle there
     timing: dict
-    base_names: tuple = ()  # the base parameters, in the order of z[:n_base]
     z: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # current model
     r: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # its whitened residuals
     r_raw: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))  # and sensor-weighted ones
@@ -867,12 +866,13 @@ def _drift_share(loop: _Loop, ff: _FoldFits, c: str, pred_before: np.ndarray, co
     on the tests of the mode where it acts; 0 where a base parameter it changes is not fitted or a
     held-out fit of its parameter has the wrong sign."""
     names, mode, sign = DRIFT_EFFECTS[c]
-    if not all(n in loop.base_names for n in names):
+    pmap = loop.prob.pmap  # the base parameters, in the order of z[:n_base]
+    if not all(n in pmap.fields for n in names):
         return 0.0
     zs, pred = ff.steps(chosen_idx + cols_c)
     if not np.all(sign * zs[:, cols_c] > 0):
         return 0.0
-    return ff.between_record_share(pred_before, pred, [loop.base_names.index(n) for n in names], loop.modes == mode)
+    return ff.between_record_share(pred_before, pred, [pmap.fields.index(n) for n in names], loop.modes == mode)
 
 
 def _fold_sse(res: np.ndarray, folds: np.ndarray) -> np.ndarray:
@@ -1019,8 +1019,7 @@ def _setup(p_base: Parameters, drive: Drive, experiments: list[Experiment], batc
     unresolved = {n_base + j: (c.index + 1) * th_span < 2.0 * math.pi for j, c in enumerate(cols) if c.index is not None}
     loop = _Loop(prob=prob, jac_prob=eqx.tree_at(lambda q: q.simulator, prob, loose), p_base=p_base, batch=batch,
                  sig_exp=_record_noise(experiments, modes, sigma, per_record_noise), m=m, modes=modes, cols=cols,
-                 n_base=n_base, unresolved={j: u for j, u in unresolved.items() if u.any()}, timing=timing, z=z0,
-                 base_names=tuple(base_free))
+                 n_base=n_base, unresolved={j: u for j, u in unresolved.items() if u.any()}, timing=timing, z=z0)
     return loop, traj, pmap, ctx
 
 
