@@ -10,7 +10,7 @@ effects and, for periodic effects, orders), false findings on clean datasets, wr
 the time per dataset.
 
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
-[--seeds 5000,5004] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]`.
+[--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]`.
 """
 
 import argparse
@@ -110,6 +110,8 @@ def main() -> int:
                     help="keep the generated datasets in this folder (one sub-folder per seed) and reuse those "
                          "already there whose truth.yaml has the planned seed, drive and effects")
     ap.add_argument("--seeds", default=None, help="only these seeds of the plan, comma-separated (e.g. 5000,5004)")
+    ap.add_argument("--log", action="store_true",
+                    help="print the diagnosis's progress (each round's candidates, their held-out gains and shares)")
     ap.add_argument("--no-readapt-after-form", action="store_true",
                     help="diagnose with readapt_after_form=False (screen the effects with round 1's Jacobian and "
                          "noise model; the default before 2026-11-27)")
@@ -136,7 +138,8 @@ def main() -> int:
         t0 = time.perf_counter()
         paper = identify_paper(exps, ds.drive)
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
-                     two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver)
+                     two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
+                     log=print if args.log else (lambda *_: None))
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
         right = set(found) == set(truth) and all(truth[k] == found[k] for k in truth if k in PERIODIC)

@@ -3,7 +3,7 @@
 import numpy as np
 
 from hdjax import Significance
-from hdjax._diagnose import _FoldFits, _judge, _solve_normal
+from hdjax._diagnose import _drift_share, _FoldFits, _judge, _solve_normal
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -99,13 +99,13 @@ def test_between_record_share_tells_a_drift_from_record_to_record_scatter():
     """The share is what the drift term predicts of each held-out record's own viscous change, over
     what that record's own fit gains: about 1 for a drift with session time; for a scatter of the
     same size that does not follow it (orthogonal to 1 and exp(−t/τ) over the records), mostly
-    below 0. Over 20 draws the rule as `_drift_share` applies it (share ≥ `min_drift_share` and
-    β > 0 in every held-out fit) takes every drift and no scatter; the share alone passed one
-    scatter draw of 20 (0.54), whose held-out β were all negative."""
+    below 0. Over 20 draws the diagnosis's rule (`_drift_share`: 0 unless β > 0 in every held-out
+    fit; `Significance.drift_is_large`: share ≥ `min_drift_share`) takes every drift and no
+    scatter; the share alone passed one scatter draw of 20 (0.54), whose held-out β were all
+    negative."""
     starts = np.array([60.0, 900.0, 300.0, 1400.0, 150.0, 1100.0, 600.0, 450.0])
     g = np.exp(-starts / 600.0)
     basis = np.stack([np.ones_like(g), g], axis=1)
-    min_share = Significance().min_drift_share
     shares = {"drift": [], "scatter": []}
     passes = {"drift": 0, "scatter": 0}
     for seed in range(20):
@@ -115,10 +115,10 @@ def test_between_record_share_tells_a_drift_from_record_to_record_scatter():
         for kind, theta in (("drift", 0.3 * g), ("scatter", 0.3 * scatter)):
             ff = _drift_fold_fits(theta, starts, seed=seed)
             _, pred_before = ff.steps([])
-            zs, pred = ff.steps([1])
-            share = ff.between_record_share(pred_before, pred, [0], np.ones(len(starts), bool))
-            shares[kind].append(share)
-            passes[kind] += bool(share >= min_share and np.all(zs[:, 1] > 0))
+            records = np.ones(len(starts), bool)
+            steps = ff.steps([1])
+            shares[kind].append(ff.between_record_share(pred_before, steps[1], [0], records))
+            passes[kind] += Significance().drift_is_large(_drift_share(ff, pred_before, steps, [1], [0], records, 1.0))
     assert min(shares["drift"]) > 0.95 and np.median(shares["scatter"]) < 0.0, shares
     assert passes == {"drift": 20, "scatter": 0}, (passes, shares)
 

@@ -840,7 +840,7 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     # (misfit that one term absorbs in a few records is no finding)
     acting = max(mode_gains, key=mode_gains.__getitem__)
     improved = float(np.mean(d[modes == acting] > 0))
-    large = max(mode_gains.values()) > rule.min_relative_gain or (drift_share is not None and drift_share >= rule.min_drift_share)
+    large = max(mode_gains.values()) > rule.min_relative_gain or rule.drift_is_large(drift_share)
     significant = bool(np.all(sse_after < sse_before) and large
                        and dchi > chance and dchi_rest > chance
                        and min(mode_dchi.values()) > -max(chance, rule.mode_trade * max(mode_dchi.values()))
@@ -861,18 +861,26 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
 DRIFT_EFFECTS = {"thermal_drift": (("Tvp", "Tvn"), "free", 1.0)}
 
 
-def _drift_share(loop: _Loop, ff: _FoldFits, c: str, pred_before: np.ndarray, cols_c: list[int], chosen_idx: list[int]) -> float:
-    """The between-record share of drift candidate `c` (`DRIFT_EFFECTS`, `_FoldFits.between_record_share`)
-    on the tests of the mode where it acts; 0 where a base parameter it changes is not fitted or a
-    held-out fit of its parameter has the wrong sign."""
-    names, mode, sign = DRIFT_EFFECTS[c]
-    pmap = loop.prob.pmap  # the base parameters, in the order of z[:n_base]
-    if not all(n in pmap.fields for n in names):
-        return 0.0
-    zs, pred = ff.steps(chosen_idx + cols_c)
+def _drift_share(ff: _FoldFits, pred_before: np.ndarray, steps: tuple[np.ndarray, np.ndarray], cols_c: list[int],
+                 modulated: list[int], records: np.ndarray, sign: float) -> float:
+    """The between-record share (`_FoldFits.between_record_share`) of a drift term with columns
+    `cols_c`, whose held-out fold fits are `steps` (`_FoldFits.steps`), over the base columns
+    `modulated` on `records`; 0 where a held-out fit of its parameter has not the sign `sign`."""
+    zs, pred = steps
     if not np.all(sign * zs[:, cols_c] > 0):
         return 0.0
-    return ff.between_record_share(pred_before, pred, [pmap.fields.index(n) for n in names], loop.modes == mode)
+    return ff.between_record_share(pred_before, pred, modulated, records)
+
+
+def _drift_share_of(loop: _Loop, ff: _FoldFits, c: str, pred_before: np.ndarray, steps: tuple[np.ndarray, np.ndarray],
+                    cols_c: list[int]) -> float:
+    """`_drift_share` of the drift candidate `c` (`DRIFT_EFFECTS`) on the tests of the mode where it
+    acts; 0 where a base parameter it changes is not fitted."""
+    names, mode, sign = DRIFT_EFFECTS[c]
+    fields = loop.prob.pmap.fields  # the base parameters, in the order of z[:n_base]
+    if not all(n in fields for n in names):
+        return 0.0
+    return _drift_share(ff, pred_before, steps, cols_c, [fields.index(n) for n in names], loop.modes == mode, sign)
 
 
 def _fold_sse(res: np.ndarray, folds: np.ndarray) -> np.ndarray:
@@ -889,21 +897,17 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
     zs_before, pred_before = ff.steps(chosen_idx)
     res_before, raw_before = loop.simulate_each(zs_before)
     e_before = _per_exp(res_before)
-    predicted = {}
-    for c in pool:
-        _, pred = ff.steps(chosen_idx + cand_idx[c])
-        predicted[c] = 1.0 - _fold_sse(pred, folds).sum() / _fold_sse(pred_before, folds).sum()
-    share = {c: _drift_share(loop, ff, c, pred_before, cand_idx[c], chosen_idx) for c in pool if c in DRIFT_EFFECTS}
+    steps = {c: ff.steps(chosen_idx + cand_idx[c]) for c in pool}  # held-out fold fits with each candidate
+    predicted = {c: 1.0 - _fold_sse(steps[c][1], folds).sum() / _fold_sse(pred_before, folds).sum() for c in pool}
+    share = {c: _drift_share_of(loop, ff, c, pred_before, steps[c], cand_idx[c]) for c in pool if c in DRIFT_EFFECTS}
     scores, raw_after_of = {}, {}
     for c in sorted(pool, key=lambda c: -predicted[c]):
         s = {"predicted_gain": float(predicted[c]), "k": len(cand_idx[c]), "simulated": False}
         drift = share.get(c)
         if drift is not None:
             s["between_record_share"] = drift
-        if len(raw_after_of) < n_simulated and (predicted[c] > 0.5 * rule.min_relative_gain
-                                                or (drift is not None and drift >= rule.min_drift_share)):
-            zs, _ = ff.steps(chosen_idx + cand_idx[c])
-            res_after, raw_after_of[c] = loop.simulate_each(zs)
+        if len(raw_after_of) < n_simulated and (predicted[c] > 0.5 * rule.min_relative_gain or rule.drift_is_large(drift)):
+            res_after, raw_after_of[c] = loop.simulate_each(steps[c][0])
             s.update(_judge(res_before, res_after, folds, loop.modes, s["k"], rule, drift_share=drift))
         else:
             s.update(gain=float(predicted[c]), significant=False)

@@ -50,6 +50,11 @@ class Significance:
         """Enough held-out experiments (or folds) improved: at least `min_improved_fraction`."""
         return improved_fraction >= self.min_improved_fraction
 
+    def drift_is_large(self, between_record_share: float | None) -> bool:
+        """A drift term's between-record share (None: the candidate is no drift term) is at least
+        `min_drift_share`: its effect size in place of `min_relative_gain`."""
+        return between_record_share is not None and between_record_share >= self.min_drift_share
+
 
 #: The dynamic diagnosis's rules (`hdjax.diagnose` defaults).
 OUTPUT_ERROR_RULES = Significance()
