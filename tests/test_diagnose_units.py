@@ -106,6 +106,7 @@ def test_between_record_share_tells_a_drift_from_record_to_record_scatter():
     starts = np.array([60.0, 900.0, 300.0, 1400.0, 150.0, 1100.0, 600.0, 450.0])
     g = np.exp(-starts / 600.0)
     basis = np.stack([np.ones_like(g), g], axis=1)
+    records = np.ones(len(starts), bool)
     shares = {"drift": [], "scatter": []}
     passes = {"drift": 0, "scatter": 0}
     for seed in range(20):
@@ -115,7 +116,6 @@ def test_between_record_share_tells_a_drift_from_record_to_record_scatter():
         for kind, theta in (("drift", 0.3 * g), ("scatter", 0.3 * scatter)):
             ff = _drift_fold_fits(theta, starts, seed=seed)
             _, pred_before = ff.steps([])
-            records = np.ones(len(starts), bool)
             steps = ff.steps([1])
             shares[kind].append(ff.between_record_share(pred_before, steps[1], [0], records))
             passes[kind] += Significance().drift_is_large(_drift_share(ff, pred_before, steps, [1], [0], records, 1.0))
