@@ -1,5 +1,10 @@
 """Joint trajectory-error fit recovers the truth on a small simulated campaign, and the `fit`
-workflow writes the SPEC §3 keys."""
+workflow writes the SPEC §3 keys.
+
+The campaign is made by `hdjax.simulate`, the plant the fit inverts, so the model is exact here:
+these tests check the optimiser, the gradients and the workflow where the answer is known, not
+identification on a real bench (that is an inverse crime by design; the independent bench,
+`hdjax.bench`, judges the diagnosis in `test_diagnose_bench.py`; no fit-recovery test on it yet)."""
 
 import json
 
