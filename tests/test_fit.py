@@ -3,8 +3,9 @@ workflow writes the SPEC §3 keys.
 
 The campaign is made by `hdjax.simulate`, the plant the fit inverts, so the model is exact here:
 these tests check the optimiser, the gradients and the workflow where the answer is known, not
-identification on a real bench (that is an inverse crime by design; the independent bench,
-`hdjax.bench`, judges the diagnosis in `test_diagnose_bench.py`; no fit-recovery test on it yet)."""
+identification on a real bench (that is an inverse crime by design). On the independent bench
+(`hdjax.bench`), the fit's recovery is tested in `test_fit_bench.py` and the diagnosis in
+`test_diagnose_bench.py`."""
 
 import json
 

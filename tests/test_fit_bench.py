@@ -1,0 +1,85 @@
+"""The trajectory fit on data the package did not make: recovery of the drive's parameters from
+clean datasets of the independent bench (`hdjax.bench`), where the paper model is never exact.
+
+What differs from hdjax's plant (all `hdjax.bench.Deviations` on, their defaults): the bench is a
+numpy fixed-step (20 kHz) velocity-level integrator written apart from hdjax; its low-speed
+friction is exact stick–slip with a breakaway torque above the friction level, and its sliding
+friction is eq. 9 with the non-viscous part clipped at zero (not tanh(ω/s)); the current comes from
+a simulated PI current loop with PWM ripple and is *sampled*; the sensors are low-pass filtered,
+offset and quantised, and the time stamps jitter. The fit knows none of this.
+
+What is asserted, and why:
+- K1, Tst, Jeff and the viscous and positive Coulomb terms within 3 % of the bench's drawn truth
+  (the bar the independent-bench issue set for clean data; measured 2026-11-28: at most 2.0 %).
+- The fitted friction torque at the speeds the free records reached (quartile, median and 90 % of
+  |ω| in each direction) within 3 % of the bench's sliding friction (measured: at most 1.5 %).
+- The trajectory fit is closer to the truth than the paper's regressions it starts from.
+
+Not asserted: the Stribeck amplitudes Tssp1, Tssn1 (eq. 9's exponential takes up the bench's
+stick–slip law; measured 12–62 % off) and Tsn alone (on HD2 seed 11 the bench clips the negative
+direction's Tsn + Tssn1 < 0 at zero, which eq. 9 cannot do; Tsn came out 10 % low while the
+friction torque it predicts at the measured speeds is within 0.6 %).
+"""
+
+
+import jax
+import numpy as np
+import pytest
+
+from hdjax import Parameters, fit_parameters, friction_torque, identify_paper, load_dataset, stack_experiments
+from hdjax.bench import make_dataset
+
+jax.config.update("jax_enable_x64", True)
+
+CASES = [("hd2", 11), ("hd1", 12)]  # seeds the diagnosis tests and benchmark do not use
+RECOVERED = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp")
+
+
+@pytest.fixture(scope="module")
+def fits(tmp_path_factory):
+    out = {}
+    for drive, seed in CASES:
+        folder = tmp_path_factory.mktemp(f"bench_{drive}") / "ds"
+        truth = make_dataset(folder, drive=drive, seed=seed, n_locked=2, n_free=2, duration=1.0)
+        ds = load_dataset(folder)
+        exps = [ds.experiments[i] for i in ds.dynamic_indices()]
+        start = identify_paper(exps, ds.drive).parameters()
+        fit = fit_parameters(start, ds.drive, stack_experiments(exps), max_steps=20)
+        speeds = np.concatenate([np.asarray(e.motor_velocity) for e in exps if float(e.free) == 1.0])
+        true_p = Parameters.from_dict({**start.to_dict(), **truth["parameters"]})
+        out[drive] = (true_p, start, fit, speeds)
+    return out
+
+
+def _rel(p: Parameters, true_p: Parameters, k: str) -> float:
+    return abs(float(getattr(p, k)) / float(getattr(true_p, k)) - 1)
+
+
+@pytest.mark.parametrize("drive", [d for d, _ in CASES])
+def test_trajectory_fit_recovers_the_independent_bench(fits, drive):
+    true_p, start, fit, _ = fits[drive]
+    errors = {k: _rel(fit.params, true_p, k) for k in RECOVERED}
+    assert max(errors.values()) < 0.03, errors
+    # the fit is worth running: closer to the truth than the regressions it starts from
+    assert max(errors.values()) < max(_rel(start, true_p, k) for k in RECOVERED), errors
+
+
+def _bench_sliding_friction(p: Parameters, w: np.ndarray) -> np.ndarray:
+    """The bench's sliding friction (N·m) at motor speeds `w` (rad/s), as its truth.yaml states
+    it: eq. 9 with the non-viscous part clipped at zero, written here apart from hdjax's code."""
+    pos = w > 0
+    viscous = np.where(pos, float(p.Tvp), float(p.Tvn)) * w
+    coulomb = np.where(pos, float(p.Tsp), float(p.Tsn))
+    stribeck = np.where(pos, float(p.Tssp1), float(p.Tssn1)) * np.exp(-((w / float(p.Tss2)) ** 2))
+    return viscous + np.sign(w) * np.maximum(coulomb + stribeck, 0.0)
+
+
+@pytest.mark.parametrize("drive", [d for d, _ in CASES])
+def test_fitted_friction_matches_the_bench_at_the_measured_speeds(fits, drive):
+    true_p, _, fit, speeds = fits[drive]
+    for sign in (1.0, -1.0):
+        w = sign * np.quantile(np.abs(speeds[np.sign(speeds) == sign]), [0.25, 0.5, 0.9])
+        true_t = _bench_sliding_friction(true_p, w)
+        assert np.all(np.abs(w) > 0.05)  # beyond the bench's stick band
+        err = np.abs(np.asarray(friction_torque(fit.params, w)) / true_t - 1)
+        assert np.all(err < 0.03), (sign, w, err)
