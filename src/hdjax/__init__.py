@@ -54,6 +54,7 @@ from ._fit import (
     DEFAULT_FREE as DEFAULT_FREE,
     POSITIVE as POSITIVE,
     CostStop as CostStop,
+    block_covariance as block_covariance,
     experiment_residuals as experiment_residuals,
     fit_noise_levels as fit_noise_levels,
     fit_parameters as fit_parameters,

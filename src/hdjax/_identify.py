@@ -32,6 +32,7 @@ DEFAULTS = {
         "rtol": 1e-5,
         "cost_rtol": 1e-5,
         "step_se_tol": 0.1,
+        "se_block": 0.1,
         "per_experiment": True,
         "per_experiment_max_steps": 12,
         "solver": "ros34pw2",
@@ -172,7 +173,7 @@ def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
     res = fit_parameters(
         p0, drive, batch, free=free_names, simulator=sim_fit, max_steps=int(opts["trajectory"]["max_steps"]),
         cost_rtol=float(opts["trajectory"]["cost_rtol"]), step_se_tol=float(opts["trajectory"]["step_se_tol"]),
-        throw=False,  # a fit that stops short is reported (`_lm_notes`), not an error
+        se_block=float(opts["trajectory"]["se_block"]), throw=False,  # a fit that stops short is reported (`_lm_notes`), not an error
     )
     t_traj = time.time() - t0
     log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({t_traj:.1f} s)")
@@ -261,6 +262,7 @@ def _parameters_json(res, paper, per_fit, undetermined: dict[str, str], truth) -
             "value": float(getattr(res.params, k)),
             "unit": PARAMETER_UNITS[k],
             "std_error": res.std_error.get(k),
+            "std_error_white": res.std_error_white.get(k),
             # the trajectory method's own consistency where per-experiment fits ran, else the paper's
             "consistency": _finite_or_none(traj_cons) if traj_per is not None else _finite_or_none(paper.consistency.get(k)),
             "consistency_method": "trajectory" if traj_per is not None else "paper",
@@ -282,7 +284,8 @@ def _parameters_json(res, paper, per_fit, undetermined: dict[str, str], truth) -
 
 def _fit_section(res, overall: dict, per_exp: list[dict], experiments_in_fit: list[str]) -> dict:
     """fit.json's `fit`: pooled and per-experiment NRMSE, the LM outcome, the noise levels (N·m,
-    rad/s, rad) and the correlation matrix of the freed parameters."""
+    rad/s, rad), the correlation matrix of the freed parameters and how their standard errors
+    were computed (`TrajectoryFit.std_error_method`)."""
     return {
         "nrmse": overall,
         "per_experiment": per_exp,
@@ -293,6 +296,8 @@ def _fit_section(res, overall: dict, per_exp: list[dict], experiments_in_fit: li
         "experiments_in_fit": experiments_in_fit,
         "noise_levels": dict(zip(("torque", "motor_velocity", "output_position"), res.sigma.tolist())),
         "correlation": {"parameters": list(res.free), "matrix": res.correlation.tolist()},
+        "std_error_method": res.std_error_method,
+        "std_error_block_s": res.se_block,
     }
 
 
@@ -337,6 +342,9 @@ def _report(r: dict, truth) -> str:
         lines.append(f"- {ch}: {v:.4f}")
     lines.append(f"- reduced chi-square (noise-weighted): {r['fit']['chi2_reduced']:.3g}; LM steps {r['fit']['lm_steps']}, "
                  f"converged: {r['fit']['converged']}")
+    if r["fit"].get("std_error_method") == "block_sandwich":
+        lines.append(f"- std errors: robust to a misfit correlated over {r['fit']['std_error_block_s']:g} s (block sandwich); the white-noise "
+                     "Gauss–Newton ones are in fit.json (`std_error_white`) and are smaller where the model is not exact")
     und = {k: e["undetermined"] for k, e in r["parameters"].items() if "undetermined" in e}
     if und:
         lines += ["", "## Parameters the data do not determine", ""]
