@@ -318,7 +318,8 @@ def _report(r: dict, truth) -> str:
     lines = [f"# Identification of `{r['dataset']}`", ""]
     lines.append("Two methods: the paper's regressions (section III, per experiment, with its consistency measure) and "
                  "the joint trajectory-error fit (Levenberg–Marquardt through the diffrax plant, standard errors from "
-                 "the Gauss–Newton covariance).")
+                 + ("a block sandwich covariance that allows a misfit correlated in time)."
+                    if r["fit"].get("std_error_method") == "block_sandwich" else "the Gauss–Newton covariance)."))
     lines += ["", "## Table I", ""]
     lines.append("Consistency is the paper's measure, std/|mean| of the per-experiment estimates (trajectory: one LM fit "
                  "per experiment; paper: its regressions per experiment).")
