@@ -17,6 +17,7 @@ import pytest
 
 import hdjax
 from hdjax import CostStop, block_covariance, fit_parameters, fit_per_experiment, identify_paper, load_dataset, write_dataset
+from hdjax._covariance import robust_covariance
 from hdjax._fit import _final_residual_and_jacobian, _stalled
 from hdjax.fit import run_fit
 from helpers import hd2
@@ -217,7 +218,9 @@ def test_block_covariance_matches_the_spread_under_correlated_residuals():
         se_block, se_white = [], []
         for e, b in zip(E[:40], beta[:40]):
             r = e - J @ b
-            cov, G = block_covariance(J, r, n_time=n_time, block=100)
+            blocks = np.broadcast_to((np.arange(n_time) // 100)[None, None], (n_rec, 3, n_time)) \
+                + 1000 * np.arange(n_rec)[:, None, None]
+            cov, G = block_covariance(J, r, blocks)
             se_block.append(np.sqrt(np.diag(cov)))
             se_white.append(np.sqrt(np.diag(np.linalg.inv(J.T @ J)) * np.sum(r**2) / (len(r) - 3)))
         assert G == n_rec * n_time // 100
@@ -228,3 +231,17 @@ def test_block_covariance_matches_the_spread_under_correlated_residuals():
             assert np.all(np.abs(ratio_white - 1) < 0.1), ratio_white
         else:  # the white errors miss the correlation by several times on the slow columns
             assert np.all(ratio_white[:2] < 0.3), ratio_white
+
+
+def test_robust_covariance_falls_back_with_too_few_blocks():
+    """Fewer than two blocks per fitted parameter: the sum of their outer products cannot be trusted
+    (rank ≤ blocks), so `robust_covariance` returns the fallback it was given."""
+    rng = np.random.default_rng(0)
+    J, r = rng.normal(size=(600, 4)), rng.normal(size=600)
+    fallback = np.eye(4)
+    cov, how = robust_covariance(J, r, np.repeat(np.arange(7), 600 // 7 + 1)[:600], fallback)  # 7 blocks < 8
+    assert how == "fallback" and cov is fallback
+    cov, how = robust_covariance(J, r, np.repeat(np.arange(8), 75), fallback)
+    assert how == "block_sandwich" and np.all(np.isfinite(cov)) and not np.allclose(cov, fallback)
+    r[:75] = 0.0  # a block without data (padding) does not count
+    assert robust_covariance(J, r, np.repeat(np.arange(8), 75), fallback)[1] == "fallback"

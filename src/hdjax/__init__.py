@@ -31,6 +31,7 @@ from ._control import (
     tune_gains as tune_gains,
     ziegler_nichols_pi as ziegler_nichols_pi,
 )
+from ._covariance import block_covariance as block_covariance, time_blocks as time_blocks
 from ._data import (
     Dataset as Dataset,
     DatasetError as DatasetError,
@@ -54,7 +55,6 @@ from ._fit import (
     DEFAULT_FREE as DEFAULT_FREE,
     POSITIVE as POSITIVE,
     CostStop as CostStop,
-    block_covariance as block_covariance,
     experiment_residuals as experiment_residuals,
     fit_noise_levels as fit_noise_levels,
     fit_parameters as fit_parameters,

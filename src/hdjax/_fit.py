@@ -34,6 +34,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 from numpy.typing import ArrayLike
 
+from ._covariance import robust_covariance, time_blocks, white_covariance
 from ._effects import Effects
 from ._experiment import Experiment
 from ._lm import MarquardtLM
@@ -251,47 +252,6 @@ class TrajectoryFit(eqx.Module):
     result: optx.RESULTS
 
 
-def _covariance(J: Float[np.ndarray, "residual free"], chi2: float) -> Float[np.ndarray, "free free"]:
-    JtJ = J.T @ J
-    try:
-        cov = np.linalg.pinv(JtJ, rcond=1e-13) * chi2
-    except np.linalg.LinAlgError:
-        cov = np.full_like(JtJ, np.nan)
-    return cov
-
-
-def block_covariance(
-    J: Float[np.ndarray, "residual free"], r: Float[np.ndarray, " residual"], *, n_time: int, block: int
-) -> tuple[Float[np.ndarray, "free free"], int]:
-    """The cluster-robust (sandwich) covariance of a weighted least-squares fit whose residuals
-    `r` (rows ordered experiment, channel, sample, as `fit_parameters` builds them; `n_time` samples
-    per record) are correlated within `block` consecutive samples of a record and independent
-    between such blocks: (JᵀJ)⁻¹ (Σ_b g_b g_bᵀ) (JᵀJ)⁻¹ · G/(G − 1), with g_b = J_bᵀ r_b summed over
-    the block's samples and channels and G the number of blocks that hold data (a record's last,
-    shorter block included). With white residuals of unit variance it is the Gauss–Newton
-    covariance; where the model is not exact (a real bench) the misfit is correlated over the
-    records' motion and this one is larger. Returns (covariance, G).
-
-    Measured on clean independent-bench data (`tests/test_fit_bench.py`'s datasets, 2026-11-28): the
-    nine fitted parameters were 0.3–59 Gauss–Newton standard errors from the bench's truth; with
-    0.1 s blocks 0.1–3.9 of these, except the Stribeck amplitude Tssn1 on HD2 at 9.6 (a bias, not
-    noise: eq. 9 cannot take the bench's stick–slip law, clipped at zero in that direction)."""
-    n_free = J.shape[1]
-    g = (J * r[:, None]).reshape(-1, 3, n_time, n_free).sum(axis=1)  # score per record and sample
-    data = (r.reshape(-1, 3, n_time) != 0.0).any(axis=1)  # samples that hold a residual
-    n_blocks = -(-n_time // block)
-    pad = n_blocks * block - n_time
-    g = np.pad(g, ((0, 0), (0, pad), (0, 0))).reshape(g.shape[0], n_blocks, block, n_free).sum(axis=2)
-    has = np.pad(data, ((0, 0), (0, pad))).reshape(data.shape[0], n_blocks, block).any(axis=2)
-    gb = g[has]
-    G = int(gb.shape[0])
-    try:
-        Hi = np.linalg.pinv(J.T @ J, rcond=1e-13)
-    except np.linalg.LinAlgError:
-        return np.full((n_free, n_free), np.nan), G
-    return Hi @ (gb.T @ gb) @ Hi * (G / max(G - 1, 1)), G
-
-
 STALL_WINDOW = 3
 """LM steps between two checks of the cost-stall rule (`_stalled`)."""
 
@@ -493,14 +453,13 @@ def fit_parameters(
     theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
     n_obs = int(np.sum(r != 0.0))
     chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))
-    n_time = int(batch.time.shape[-1])
-    dt = float(batch.time[0, 1] - batch.time[0, 0])
-    cov_white = _covariance(J, chi2)
-    cov_block, n_blocks = block_covariance(J, r, n_time=n_time, block=max(1, int(round(se_block / dt))))
-    method = "block_sandwich" if n_blocks >= 2 * len(free) else "white"
+    cov_white = white_covariance(J, chi2)
+    blocks = np.broadcast_to(time_blocks(np.asarray(batch.time), se_block)[:, None, :], (batch.time.shape[0], 3, batch.time.shape[1]))
+    cov_robust, method = robust_covariance(J, r, blocks, cov_white)  # residual rows: experiment, channel, sample
+    method = "white" if method == "fallback" else method
     # delta method: d p / d theta
     dp = np.asarray(jax.jacfwd(lambda t: jnp.stack([getattr(pmap.to_model(t, p0), k) for k in free]))(jnp.asarray(theta)))
-    cov = dp @ (cov_block if method == "block_sandwich" else cov_white) @ dp.T
+    cov = dp @ cov_robust @ dp.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     se_white = np.sqrt(np.clip(np.diag(dp @ cov_white @ dp.T), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):

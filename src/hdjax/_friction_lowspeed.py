@@ -34,8 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
+from ._covariance import effective_samples, robust_covariance
 from ._friction import dahl_recurrence
-from ._friction_fit import FrictionProblem, effective_samples, rms_stats
+from ._friction_fit import FrictionProblem, rms_stats
 
 LOW_SPEED_LIMIT = 0.01  # rad/s: records whose 98th percentile |ω| is below this use the low-speed law
 LOW_SPEED_MODELS = ("regularised_coulomb", "dahl_presliding")
@@ -176,7 +177,7 @@ def law_parameters(law: LowSpeedLaw) -> dict[str, tuple[float, str]]:
 
 def law_std_errors(problem: FrictionProblem, law: LowSpeedLaw, w: np.ndarray) -> dict[str, float]:
     """Gauss–Newton standard errors of Tc, offset and the scale (central difference in its
-    logarithm), inflated for autocorrelated residuals as `FrictionProblem.std_errors`."""
+    logarithm), allowing for correlated residuals as `FrictionProblem.std_errors`."""
     on = (w > 0) & problem.mask
     lin = ["Tc", "offset"] + (["z0"] if law.z0_fitted else [])
     c = np.array([law.coef["Tc"], law.coef["offset"]] + ([law.coef["Tc"] * law.coef["z0"]] if law.z0_fitted else []))
@@ -188,7 +189,8 @@ def law_std_errors(problem: FrictionProblem, law: LowSpeedLaw, w: np.ndarray) ->
     n, p = r.size, J.shape[1]
     s2 = float(r @ r) / max(n - p, 1)
     n_eff = effective_samples((A[1] @ c - problem.T)[e][on[e]] for e in range(problem.E))
-    cov = s2 * n / max(n_eff, p + 1.0) * np.linalg.pinv(J.T @ J)
+    fallback = s2 * n / max(n_eff, p + 1.0) * np.linalg.pinv(J.T @ J)
+    cov, _ = robust_covariance(J, r, problem.blocks()[on], fallback)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     out = {k: float(se[i]) for i, k in enumerate(lin[:2])}
     out["velocity_scale" if law.model == "regularised_coulomb" else "presliding_distance"] = law.scale * float(se[-1])

@@ -1,0 +1,80 @@
+"""Covariances of weighted least-squares fits, for both data kinds (`fit_parameters` on locked and
+free records, the friction-only fits): the white-noise Gauss–Newton one, and a block (cluster)
+sandwich that allows a misfit correlated in time, which is what a bench leaves when the model is
+not exact (benchmarks/RESULTS.md, 2026-11-28)."""
+
+import numpy as np
+from jaxtyping import Float
+
+
+def white_covariance(J: Float[np.ndarray, "residual free"], chi2: float) -> Float[np.ndarray, "free free"]:
+    """The Gauss–Newton covariance σ²(JᵀJ)⁻¹ (σ² = `chi2`, the reduced χ²): right only when the
+    residuals are white."""
+    JtJ = J.T @ J
+    try:
+        cov = np.linalg.pinv(JtJ, rcond=1e-13) * chi2
+    except np.linalg.LinAlgError:
+        cov = np.full_like(JtJ, np.nan)
+    return cov
+
+
+def time_blocks(time: Float[np.ndarray, "exp time"], block_s: float) -> np.ndarray:
+    """The block of each sample (int labels, shape of `time`): the samples of one record that lie
+    in the same `block_s` seconds since its first sample share a label; records never share one."""
+    k = np.floor((time - time[:, :1]) / block_s).astype(np.int64)
+    k = np.clip(k, 0, None)  # padding repeats a record's times; its residuals are zero anyway
+    return np.arange(time.shape[0])[:, None] * (int(k.max()) + 1) + k
+
+
+def block_covariance(
+    J: Float[np.ndarray, "residual free"], r: Float[np.ndarray, " residual"], blocks: np.ndarray
+) -> tuple[Float[np.ndarray, "free free"], int]:
+    """The cluster-robust (sandwich) covariance of a weighted least-squares fit whose residuals `r`
+    are correlated within blocks of rows and independent between them: (JᵀJ)⁻¹ (Σ_b g_b g_bᵀ)
+    (JᵀJ)⁻¹ · G/(G − 1), with g_b = J_bᵀ r_b summed over the rows of block b (`blocks`: one int label
+    per row, e.g. `time_blocks` over every channel of a record) and G the number of blocks that
+    hold data (rows whose residual is exactly 0, padding or unmeasured or weighted out, hold none).
+    With white residuals of unit variance it is the Gauss–Newton covariance; where the model is not
+    exact (a real bench) the misfit is correlated over the records' motion and this one is larger.
+    Both data kinds use it (`fit_parameters`, the friction-only fits). Returns (covariance, G).
+
+    Measured on clean independent-bench data (`tests/test_fit_bench.py`'s datasets, 2026-11-28): the
+    nine fitted parameters were 0.3–59 Gauss–Newton standard errors from the bench's truth; with
+    0.1 s blocks 0.1–3.9 of these, except the Stribeck amplitude Tssn1 on HD2 at 9.6 (a bias, not
+    noise: eq. 9 cannot take the bench's stick–slip law, clipped at zero in that direction).
+    An n/n_eff inflation from each record's lag-1 autocorrelation left them up to 32 away."""
+    n_free = J.shape[1]
+    has = r != 0.0
+    _, block_of = np.unique(np.asarray(blocks).ravel()[has], return_inverse=True)
+    G = int(block_of.max()) + 1 if block_of.size else 0
+    g = np.zeros((G, n_free))
+    np.add.at(g, block_of, J[has] * r[has, None])
+    try:
+        Hi = np.linalg.pinv(J.T @ J, rcond=1e-13)
+    except np.linalg.LinAlgError:
+        return np.full((n_free, n_free), np.nan), G
+    return Hi @ (g.T @ g) @ Hi * (G / max(G - 1, 1)), G
+
+
+def robust_covariance(
+    J: Float[np.ndarray, "residual free"], r: Float[np.ndarray, " residual"], blocks: np.ndarray, fallback: np.ndarray
+) -> tuple[Float[np.ndarray, "free free"], str]:
+    """`block_covariance`, or `fallback` when fewer than two blocks per fitted parameter hold data
+    (too few for the sum of their outer products). Returns (covariance, "block_sandwich" or
+    "fallback")."""
+    cov, G = block_covariance(J, r, blocks)
+    return (cov, "block_sandwich") if G >= 2 * J.shape[1] else (fallback, "fallback")
+
+
+def effective_samples(residuals) -> float:
+    """$n_{eff} = \\sum_e n_e (1-\\rho_e)/(1+\\rho_e)$ over records' residuals (an iterable of
+    1-d arrays), $\\rho_e$ the lag-1 autocorrelation clipped to [0, 0.999]; records with fewer
+    than 3 samples add nothing. Standard errors scale with $\\sqrt{n/n_{eff}}$."""
+    n_eff = 0.0
+    for re in residuals:
+        if re.size < 3:
+            continue
+        d = re - re.mean()
+        rho = float(np.clip(np.sum(d[1:] * d[:-1]) / max(np.sum(d * d), 1e-300), 0.0, 0.999))
+        n_eff += re.size * (1 - rho) / (1 + rho)
+    return n_eff
