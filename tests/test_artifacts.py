@@ -27,6 +27,11 @@ def test_fit_json_is_read_with_its_consistency_and_noise_levels(tmp_path):
     assert fit.parameters.to_dict() == p.to_dict() and fit.dataset == "hd2-bench" == fit_json_dataset(path)
     assert fit.consistency["K1"] == 0.01 and fit.per_experiment["Tst"] == [p.to_dict()["Tst"]] * 2
     assert fit.noise_levels == {"torque": 0.5, "motor_velocity": 0.02}
+    assert fit.std_error == {k: None for k in PARAMETER_NAMES}  # a fit.json without standard errors
+    doc = _fit_doc(p)
+    doc["parameters"]["K1"]["std_error"] = 9.2
+    path.write_text(json.dumps(doc))
+    assert read_fit_json(path, setting="config `tune.fit`").std_error["K1"] == 9.2
 
 
 @pytest.mark.parametrize("break_it, field", [

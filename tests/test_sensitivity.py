@@ -11,6 +11,7 @@ import hdjax
 from hdjax import load_dataset, write_dataset
 from hdjax._sensitivity import (
     _options,
+    _standard_errors,
     fisher_summary,
     run_sensitivity,
     scaled_parameters,
@@ -135,3 +136,13 @@ def test_bad_option_is_refused(tiny_dataset, tmp_path):
     folder, _ = tiny_dataset
     with pytest.raises(ValueError, match="unknown option"):
         run_sensitivity(load_dataset(folder), {"sensitivity": {"max_experimnets": 3}}, tmp_path / "o", log=None)
+
+
+def test_standard_errors_carry_the_fits_own():
+    """Beside the noise-only (design) standard errors, sensitivity.json carries the fit's own, relative,
+    where the parameters came from a fit.json that has them."""
+    p, _ = hd2()
+    fs = {"std_error": {"K1": 1e-4, "Tst": 2e-4}}
+    se = _standard_errors(["K1", "Tst"], ["K1", "Tst"], fs, fs, p, {"K1": 0.01 * float(p.K1), "Tst": None})
+    assert se["K1"]["fit_relative"] == pytest.approx(0.01) and se["Tst"]["fit_relative"] is None
+    assert _standard_errors(["K1"], ["K1"], fs, fs, p, {})["K1"]["fit_relative"] is None

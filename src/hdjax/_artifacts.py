@@ -27,7 +27,8 @@ class FitFile:
     """What `sensitivity` and `tune` use from a `fit.json`: `parameters` (SI), and per parameter
     name its `consistency` (std/|mean| of the per-experiment estimates, or None) and
     `per_experiment` estimates (list, or None); `noise_levels` (channel → σ) of the fit, possibly
-    empty; the `dataset` name it was fitted on."""
+    empty; the `dataset` name it was fitted on; `std_error` per parameter name (its unit; None
+    where not fitted), empty when the file has none."""
 
     path: pathlib.Path
     dataset: str | None
@@ -35,6 +36,7 @@ class FitFile:
     consistency: dict
     per_experiment: dict
     noise_levels: dict
+    std_error: dict = dataclasses.field(default_factory=dict)
 
 
 def fit_json_dataset(path) -> str | None:
@@ -63,7 +65,8 @@ def read_fit_json(path, *, setting: str) -> FitFile:
     noise = (d.get("fit") or {}).get("noise_levels") or {}
     return FitFile(path, d.get("dataset"), Parameters.from_dict(values),
                    {k: e.get("consistency") for k, e in entries.items()},
-                   {k: e.get("per_experiment") for k, e in entries.items()}, dict(noise))
+                   {k: e.get("per_experiment") for k, e in entries.items()}, dict(noise),
+                   {k: e.get("std_error") for k, e in entries.items()})
 
 
 def read_extended_model(path) -> tuple[Parameters, Effects]:

@@ -288,7 +288,8 @@ def workflow_simulator(opts: dict) -> Simulator:
 
 
 def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: dict, exps, log):
-    """(Parameters, source dict, consistency, per-experiment estimates, paper identification or None)."""
+    """(Parameters, source dict, consistency, per-experiment estimates, paper identification or None,
+    the fit's standard errors by name (empty without a fit.json))."""
     candidates = []
     if opts.get("fit_json"):
         p = pathlib.Path(opts["fit_json"]).expanduser()
@@ -307,7 +308,7 @@ def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: d
             log(f"      ignoring {path}: it belongs to dataset {name!r}, not {dataset.name!r}")
             continue
         fit = read_fit_json(path, setting="config `sensitivity.fit_json` / `--fit`")
-        return fit.parameters, {"kind": "fit.json", "path": str(path)}, fit.consistency, fit.per_experiment, None
+        return fit.parameters, {"kind": "fit.json", "path": str(path)}, fit.consistency, fit.per_experiment, None, fit.std_error
     from ._identify import _options as fit_options
     from ._paper_id import identify_paper
 
@@ -320,7 +321,7 @@ def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: d
         "folder); the paper's regressions (section III) were run instead of the slow trajectory fit",
         "undetermined": paper.undetermined(),
     }
-    return paper.parameters(), src, dict(paper.consistency), dict(paper.per_experiment), paper
+    return paper.parameters(), src, dict(paper.consistency), dict(paper.per_experiment), paper, {}
 
 
 def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
@@ -336,7 +337,7 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
 
     log("[1/5] parameters")
     t0 = time.time()
-    p, source, consistency, per_exp_est, paper = _parameter_source(dataset, config, out, opts, exps, log)
+    p, source, consistency, per_exp_est, paper, fit_se = _parameter_source(dataset, config, out, opts, exps, log)
     timing["parameters"] = time.time() - t0
     log(f"      from {source['kind']}" + (f" ({source['path']})" if "path" in source else ""))
 
@@ -389,7 +390,7 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
         ],
         "noise_levels": dict(zip(CHANNELS, sigma.tolist())),
         "sensitivity": _sensitivity_section(files, modes, summary),
-        "standard_errors": _standard_errors(names, est, fs_est, fs_all, p),
+        "standard_errors": _standard_errors(names, est, fs_est, fs_all, p, fit_se),
         "correlation": {"parameters": fs_all["parameters"], "matrix": fs_all["correlation"]},
         "svd": _svd_section(names, fs_all),
         "identifiability": _identifiability_section(chi2, chi2_channel, n_obs, fs_est, fs_all, comparison),
@@ -479,16 +480,20 @@ def _chi_square(rs, blocks, ok, P) -> tuple[int, float, dict[str, float]]:
     return n_obs, chi2, chi2_channel
 
 
-def _standard_errors(names, est, fs_est, fs_all, p) -> dict:
+def _standard_errors(names, est, fs_est, fs_all, p, fit_se: dict) -> dict:
     """sensitivity.json's `standard_errors`: relative (estimated set, and all free) and absolute
-    (in each parameter's unit) noise-only standard errors."""
+    (in each parameter's unit) noise-only standard errors, and beside them the fit's own relative
+    standard error (`fit_relative`: from fit.json, allowing for a misfit correlated in time; None
+    without a fit.json or where the fit did not estimate the parameter)."""
     std_errors = {}
     for k in names:
         rel = fs_est["std_error"].get(k, fs_all["std_error"][k])
+        v, se = abs(float(getattr(p, k))), fit_se.get(k)
         std_errors[k] = {
             "relative": rel,
             "absolute": rel * abs(float(getattr(p, k))),
             "relative_all_free": fs_all["std_error"][k],
+            "fit_relative": float(se) / v if se is not None and v > 0 and math.isfinite(float(se)) else None,
             "estimated": k in est,
             "unit": PARAMETER_UNITS[k],
         }
@@ -533,8 +538,9 @@ def _identifiability_section(chi2, chi2_channel, n_obs, fs_est, fs_all, comparis
         "note": (
             "Standard errors are noise-only: √diag((JᵀJ)⁻¹) with J the noise-weighted residual Jacobian in ln p, "
             "so they are relative. `relative` holds the 9 parameters the fit estimates (alpha and Tss2 fixed, "
-            "as in the paper); `relative_all_free` frees all 11. Multiply by √chi2_reduced for the fit's "
-            "convention (model error inflating the noise)."
+            "as in the paper); `relative_all_free` frees all 11. They are a design quantity (what noise alone "
+            "leaves); the fit's own standard errors (`fit_relative`, from fit.json) allow for the model error "
+            "that a bench leaves, correlated in time (a block sandwich), and are larger where the model is not exact."
         ),
         "estimated": fs_est,
         "all": fs_all,
@@ -992,14 +998,15 @@ def _report_identifiability(r: dict) -> list[str]:
              "the model explains the data to the noise level." if idf["chi2_reduced"] < 1.5 else
              "above 1, so the residual holds more than noise (model error), which the noise-only SE leave out."), ""]
     L += ["| parameter | value | relative SE (9 estimated) | relative SE (all 11 free) "
-          "| noise-predicted per-experiment spread | consistency | agree? |",
-          "|---|---|---|---|---|---|---|"]
+          "| fit's relative SE (allows for model error) | noise-predicted per-experiment spread | consistency | agree? |",
+          "|---|---|---|---|---|---|---|---|"]
     comp = {c["parameter"]: c for c in idf["comparison"]}
     for k, e in r["standard_errors"].items():
         c = comp.get(k, {})
         agree = {True: "yes", False: "no", None: "—"}[c.get("agree")]
         L.append(f"| {k} | {_g(r['parameters'][k])} {e['unit']} | {_pct(e['relative']) if e['estimated'] else 'fixed'} | "
-                 f"{_pct(e['relative_all_free'])} | {_pct(c.get('noise_predicted_spread'))} | {_pct(c.get('consistency'))} | {agree} |")
+                 f"{_pct(e['relative_all_free'])} | {_pct(e.get('fit_relative'))} | {_pct(c.get('noise_predicted_spread'))} | "
+                 f"{_pct(c.get('consistency'))} | {agree} |")
     L += ["", "Why they differ: the consistency (std/|mean| of the paper's per-experiment estimates) contains the "
           "measurement noise of *one* experiment plus model error, the regression's own errors and any drift; the "
           "joint standard error contains noise only, pooled over all experiments (≈ 1/√n of a per-experiment spread). "
