@@ -424,7 +424,7 @@ def fit_parameters(
     this fraction), see `CostStop`; `sigma` (channel noise levels; `fit_noise_levels` at `p0`, sensor plus process noise, when
     None); `se_block` (s: the standard errors allow a misfit correlated over this long, see
     `block_covariance`; 0.1 s, the scale of the records' motion: on clean independent-bench data
-    0.05–0.25 s blocks gave standard errors within 2× of each other, single-sample blocks 4–5× smaller; with
+    0.05–0.25 s blocks gave standard errors within 2× of each other, single-sample blocks 4–6× smaller; with
     fewer than two blocks per fitted parameter the white-noise errors are reported); `throw` (as in
     optimistix: raise a `RuntimeError` when LM stops without converging;
     with `throw=False` the result is returned and `result` / `converged` say how it ended).
