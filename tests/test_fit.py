@@ -239,9 +239,9 @@ def test_robust_covariance_falls_back_with_too_few_blocks():
     rng = np.random.default_rng(0)
     J, r = rng.normal(size=(600, 4)), rng.normal(size=600)
     fallback = np.eye(4)
-    cov, how = robust_covariance(J, r, np.repeat(np.arange(7), 600 // 7 + 1)[:600], fallback)  # 7 blocks < 8
+    cov, how = robust_covariance(J, r, np.repeat(np.arange(7), 600 // 7 + 1)[:600], lambda: fallback)  # 7 blocks < 8
     assert how == "fallback" and cov is fallback
-    cov, how = robust_covariance(J, r, np.repeat(np.arange(8), 75), fallback)
+    cov, how = robust_covariance(J, r, np.repeat(np.arange(8), 75), lambda: fallback)
     assert how == "block_sandwich" and np.all(np.isfinite(cov)) and not np.allclose(cov, fallback)
     r[:75] = 0.0  # a block without data (padding) does not count
-    assert robust_covariance(J, r, np.repeat(np.arange(8), 75), fallback)[1] == "fallback"
+    assert robust_covariance(J, r, np.repeat(np.arange(8), 75), lambda: fallback)[1] == "fallback"

@@ -3,6 +3,8 @@ free records, the friction-only fits): the white-noise Gauss–Newton one, and a
 sandwich that allows a misfit correlated in time, which is what a bench leaves when the model is
 not exact (benchmarks/RESULTS.md, 2026-11-28)."""
 
+from collections.abc import Callable
+
 import numpy as np
 from jaxtyping import Float
 
@@ -57,13 +59,27 @@ def block_covariance(
 
 
 def robust_covariance(
-    J: Float[np.ndarray, "residual free"], r: Float[np.ndarray, " residual"], blocks: np.ndarray, fallback: np.ndarray
+    J: Float[np.ndarray, "residual free"],
+    r: Float[np.ndarray, " residual"],
+    blocks: np.ndarray,
+    fallback: Callable[[], np.ndarray],
 ) -> tuple[Float[np.ndarray, "free free"], str]:
-    """`block_covariance`, or `fallback` when fewer than two blocks per fitted parameter hold data
-    (too few for the sum of their outer products). Returns (covariance, "block_sandwich" or
-    "fallback")."""
+    """`block_covariance`, or `fallback()` (called only then) when fewer than two blocks per fitted
+    parameter hold data (too few for the sum of their outer products). Returns (covariance,
+    "block_sandwich" or "fallback")."""
     cov, G = block_covariance(J, r, blocks)
-    return (cov, "block_sandwich") if G >= 2 * J.shape[1] else (fallback, "fallback")
+    return (cov, "block_sandwich") if G >= 2 * J.shape[1] else (fallback(), "fallback")
+
+
+def inflated_covariance(
+    J: Float[np.ndarray, "residual free"], r: Float[np.ndarray, " residual"], record_residuals
+) -> Float[np.ndarray, "free free"]:
+    """The Gauss–Newton covariance s²(JᵀJ)⁻¹ (s² over the n non-zero rows of `r`) inflated by
+    n / n_eff (`effective_samples` of `record_residuals`, at least p + 1): the friction-only fits'
+    rule before 2026-11-28, now their fallback of `robust_covariance`."""
+    n, p = int(np.count_nonzero(r)), J.shape[1]
+    s2 = float(r @ r) / max(n - p, 1)
+    return s2 * n / max(effective_samples(record_residuals), p + 1.0) * np.linalg.pinv(J.T @ J)
 
 
 def effective_samples(residuals) -> float:

@@ -455,8 +455,8 @@ def fit_parameters(
     chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))
     cov_white = white_covariance(J, chi2)
     blocks = np.broadcast_to(time_blocks(np.asarray(batch.time), se_block)[:, None, :], (batch.time.shape[0], 3, batch.time.shape[1]))
-    cov_robust, method = robust_covariance(J, r, blocks, cov_white)  # residual rows: experiment, channel, sample
-    method = "white" if method == "fallback" else method
+    cov_robust, how = robust_covariance(J, r, blocks, lambda: cov_white)  # residual rows: experiment, channel, sample
+    method = "block_sandwich" if how == "block_sandwich" else "white"
     # delta method: d p / d theta
     dp = np.asarray(jax.jacfwd(lambda t: jnp.stack([getattr(pmap.to_model(t, p0), k) for k in free]))(jnp.asarray(theta)))
     cov = dp @ cov_robust @ dp.T

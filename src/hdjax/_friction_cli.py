@@ -90,7 +90,8 @@ def friction_fit_summary(problem: FrictionProblem, *, train_fraction: float = TR
                      "fitted": free0}
     notes.append("A per-experiment estimate is null where that record alone does not determine it (its standard "
                  "error exceeds its magnitude, or its direction was not recorded); consistency (std/|mean|) uses "
-                 "the determined ones. Standard errors allow for correlated residuals (block sandwich over 0.1 s of each record).")
+                 f"the determined ones. Standard errors allow for correlated residuals (block sandwich over {problem.se_block:g} s "
+                 "of each record).")
     log(f"[2/2] held-out: first {train_fraction:.0%} of each record to fit, the rest to test; "
         "Coulomb + viscous (eq. 9's special case) the same ways")
     rec = problem.rows_records(train_fraction)

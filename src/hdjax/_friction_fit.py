@@ -43,7 +43,7 @@ import numpy as np
 import optimistix as optx
 import scipy.signal
 
-from ._covariance import effective_samples, robust_covariance, time_blocks
+from ._covariance import inflated_covariance, robust_covariance, time_blocks
 from ._data import FrictionExperiment
 from ._effects import THERMAL_TAU
 from ._experiment import stack_experiments
@@ -424,15 +424,11 @@ class FrictionProblem:
         Jf = J[:, free]
         idx = np.asarray(self.index)
         w, mask = w[:, idx], self.mask[:, idx]
-        r = np.sqrt(w) * (fit.prediction[b][:, idx] - self.T[:, idx]) / self.sigma
-        n = int(np.sum((w > 0) & mask))
-        p = int(free.sum())
-        s2 = float(np.sum(r**2)) / max(n - p, 1)
         on = (w > 0) & mask
-        n_eff = effective_samples((fit.prediction[b][e, idx] - self.T[e, idx])[on[e]] for e in range(self.E))
-        fallback = s2 * n / max(n_eff, p + 1.0) * np.linalg.pinv(Jf.T @ Jf)
-        cov, _ = robust_covariance(Jf * on.ravel()[:, None], np.where(on, r, 0.0).ravel(), self.blocks()[:, idx].ravel(),
-                                   fallback)
+        r = np.where(on, np.sqrt(w) * (fit.prediction[b][:, idx] - self.T[:, idx]) / self.sigma, 0.0).ravel()
+        Jf = Jf * on.ravel()[:, None]
+        records = [(fit.prediction[b][e, idx] - self.T[e, idx])[on[e]] for e in range(self.E)]
+        cov, _ = robust_covariance(Jf, r, self.blocks()[:, idx].ravel(), lambda: inflated_covariance(Jf, r, records))
         se = np.full(N_PARAMS, np.nan)
         se[free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         return se
@@ -549,10 +545,7 @@ def fit_coulomb_viscous(problem: "FrictionProblem", w: np.ndarray) -> tuple[dict
     sw = np.sqrt(w[on])
     c, *_ = np.linalg.lstsq(A[on] * sw[:, None], problem.T[on] * sw, rcond=None)
     pred = A @ c
-    n = int(on.sum())
-    n_eff = effective_samples((pred - problem.T)[e][on[e]] for e in range(problem.E))
-    s2 = float(np.sum(((pred - problem.T)[on] * sw) ** 2)) / max(n - 2, 1)
-    Aw = A[on] * sw[:, None]
-    fallback = s2 * n / max(n_eff, 3.0) * np.linalg.pinv(Aw.T @ Aw)
-    cov, _ = robust_covariance(Aw, (pred - problem.T)[on] * sw, problem.blocks()[on], fallback)
+    Aw, rw = A[on] * sw[:, None], (pred - problem.T)[on] * sw
+    records = [(pred - problem.T)[e][on[e]] for e in range(problem.E)]
+    cov, _ = robust_covariance(Aw, rw, problem.blocks()[on], lambda: inflated_covariance(Aw, rw, records))
     return {"Tv": float(c[0]), "Tc": float(c[1])}, np.sqrt(np.clip(np.diag(cov), 0, None)), pred

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from ._covariance import effective_samples, robust_covariance
+from ._covariance import inflated_covariance, robust_covariance
 from ._friction import dahl_recurrence
 from ._friction_fit import FrictionProblem, rms_stats
 
@@ -186,11 +186,8 @@ def law_std_errors(problem: FrictionProblem, law: LowSpeedLaw, w: np.ndarray) ->
     A = _design(problem, law.model, np.exp(np.array([u - eps, u, u + eps])))[..., : len(c)]
     J = np.concatenate([A[1][on], ((A[2] - A[0]) @ c / (2 * eps))[on][:, None]], 1)
     r = (A[1] @ c - problem.T)[on]
-    n, p = r.size, J.shape[1]
-    s2 = float(r @ r) / max(n - p, 1)
-    n_eff = effective_samples((A[1] @ c - problem.T)[e][on[e]] for e in range(problem.E))
-    fallback = s2 * n / max(n_eff, p + 1.0) * np.linalg.pinv(J.T @ J)
-    cov, _ = robust_covariance(J, r, problem.blocks()[on], fallback)
+    records = [(A[1] @ c - problem.T)[e][on[e]] for e in range(problem.E)]
+    cov, _ = robust_covariance(J, r, problem.blocks()[on], lambda: inflated_covariance(J, r, records))
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     out = {k: float(se[i]) for i, k in enumerate(lin[:2])}
     out["velocity_scale" if law.model == "regularised_coulomb" else "presliding_distance"] = law.scale * float(se[-1])

@@ -491,7 +491,7 @@ def _standard_errors(names, est, fs_est, fs_all, p, fit_se: dict) -> dict:
         v, se = abs(float(getattr(p, k))), fit_se.get(k)
         std_errors[k] = {
             "relative": rel,
-            "absolute": rel * abs(float(getattr(p, k))),
+            "absolute": rel * v,
             "relative_all_free": fs_all["std_error"][k],
             "fit_relative": float(se) / v if se is not None and v > 0 and math.isfinite(float(se)) else None,
             "estimated": k in est,
