@@ -20,6 +20,8 @@ zero torsion rate and zero velocity; the default is an L-stable Rosenbrock metho
 fall inside a step.
 """
 
+import functools
+
 import diffrax as dfx
 import equinox as eqx
 import jax
@@ -391,15 +393,27 @@ def simulate(
     fits and diagnoses are unchanged to the bit (a nested `jit` there moved their figures by
     round-off).
     """
-    if is_concrete((p, drive, exp, effects, simulator)):
-        return _simulate_compiled(p, drive, exp, effects, simulator)
-    return _simulate_traced(p, drive, exp, effects, simulator)
+    return _simulate_one(p, drive, exp, effects, simulator)
 
 
-def _simulate_traced(p: Parameters, drive: Drive, exp: Experiment, effects: Effects, simulator: Simulator) -> Trajectory:
-    """The body of `simulate`, positional (`_simulate_compiled` is its `eqx.filter_jit`: a function of
-    its own, so that `jax.jit(simulate)` still works, since a jitted function's signature is hashed
-    and the default `Effects()` holds arrays)."""
+def _compiled_when_concrete(fn):
+    """`fn(*args)` as one compiled program (`eqx.filter_jit`, reused for calls of the same
+    structure) when every argument is concrete, else traced inline into the caller's trace (a
+    nested `jit` there would move compiled fits by round-off). `fn` takes positional arguments
+    only and has no array defaults: a jitted function's signature is hashed, which is also why the
+    public functions with an `Effects()` default call such a body instead of being it."""
+    compiled = eqx.filter_jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args):
+        return compiled(*args) if is_concrete(args) else fn(*args)
+
+    return call
+
+
+@_compiled_when_concrete
+def _simulate_one(p: Parameters, drive: Drive, exp: Experiment, effects: Effects, simulator: Simulator) -> Trajectory:
+    """The body of `simulate`."""
     y0, th_m0 = _initial_state_with_effects(p, drive, exp, effects, simulator)
     geometry = (y0[0], y0[2], th_m0)
     # the mean sample step over the valid samples: time stamps may jitter (SPEC §2 allows up to 1 %
@@ -458,9 +472,6 @@ def _simulate_traced(p: Parameters, drive: Drive, exp: Experiment, effects: Effe
     )
 
 
-_simulate_compiled = eqx.filter_jit(_simulate_traced)
-
-
 def _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator):
     """`simulate` with the fixed-step implicit velocity-level stepper (`hdjax._stepper`)."""
     geometry = (y0[0], y0[2], th_m0)
@@ -509,15 +520,14 @@ def simulate_batch(
 
     With several devices (`jax.device_count() > 1`) and a concrete batch, the experiment axis is
     spread over all of them (`hdjax._sharding`); inside `jit` the caller's input shardings apply."""
-    if jax.device_count() > 1 and is_concrete(batch) and is_concrete((p, drive, effects)):
+    if jax.device_count() > 1 and is_concrete((p, drive, batch, effects)):
         sharded, n = shard_experiments(batch)
         out = _simulate_sharded(p, drive, sharded, effects, simulator, experiment_mesh())
         return jax.tree.map(lambda x: x[:n], out)
-    if is_concrete((p, drive, batch, effects, simulator)):  # as in `simulate`: compiled once, reused
-        return _simulate_each_compiled(p, drive, batch, effects, simulator)
     return _simulate_each(p, drive, batch, effects, simulator)
 
 
+@_compiled_when_concrete
 def _simulate_each(p, drive, batch, effects, simulator):
     """`simulate` over the experiments of `batch` on one device."""
     return for_each_experiment(
@@ -525,9 +535,6 @@ def _simulate_each(p, drive, batch, effects, simulator):
         batch,
         fixed_cost=is_fixed_cost(simulator),
     )
-
-
-_simulate_each_compiled = eqx.filter_jit(_simulate_each)
 
 
 @eqx.filter_jit
