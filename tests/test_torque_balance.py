@@ -1,5 +1,5 @@
-"""The diagnosis's torque-balance evidence (`hdjax._diagnose._torque_balance_spectrum` and
-`_torque_balance_cv`) on free-motion records written out here by hand: eq. 8 with a plain
+"""The diagnosis's torque-balance evidence (`hdjax._evidence.torque_balance_spectrum` and
+`torque_balance_cv`) on free-motion records written out here by hand: eq. 8 with a plain
 Coulomb + viscous friction (no Stribeck, no smoothing), a known cogging or position-dependent
 friction term, and white sensor noise on current, torque and velocity. No hdjax plant or solver
 makes these records; what is checked is the detector's algebra and its null behaviour."""
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hdjax import Drive, Parameters
-from hdjax._diagnose import _torque_balance_cv, _torque_balance_spectrum
+from hdjax._evidence import torque_balance_cv, torque_balance_spectrum
 
 jax.config.update("jax_enable_x64", True)
 
@@ -53,9 +53,9 @@ def _records(effect, order, amplitude, phase, *, n=4, seed=0):
 def test_torque_balance_names_the_order_and_recovers_the_term(effect, where, amplitude):
     order, phase = 3, 0.8
     batch, traj, m, modes = _records(effect, order, amplitude, phase)
-    _, peaks = _torque_balance_spectrum(batch, traj, m, modes, P, DRIVE)
+    _, peaks = torque_balance_spectrum(batch, traj, m, modes, P, DRIVE)
     assert [(w.split()[-1], k) for w, k, *_ in peaks] == [(where, order)], peaks
-    cv = _torque_balance_cv(batch, traj, m, modes, P, DRIVE, effect, order)
+    cv = torque_balance_cv(batch, traj, m, modes, P, DRIVE, effect, order)
     assert cv["gain"] > 0 and cv["improved_fraction"] == 1.0
     s, c = cv["coef"]
     assert np.hypot(s, c) == pytest.approx(amplitude, rel=0.1)
@@ -64,5 +64,5 @@ def test_torque_balance_names_the_order_and_recovers_the_term(effect, where, amp
 
 def test_torque_balance_finds_no_order_in_noise():
     batch, traj, m, modes = _records(None, 3, 0.0, 0.0, seed=3)
-    _, peaks = _torque_balance_spectrum(batch, traj, m, modes, P, DRIVE)
+    _, peaks = torque_balance_spectrum(batch, traj, m, modes, P, DRIVE)
     assert peaks == []

@@ -26,8 +26,8 @@ def test_every_module_but_the_bench_is_imported_through_the_checker():
 
 
 def test_an_annotated_function_refuses_mismatched_axes():
-    from hdjax._diagnose import _order_spectrum  # (res: " sample", theta: " sample")
+    from hdjax._evidence import order_spectrum  # (res: " sample", theta: " sample")
 
-    _order_spectrum(np.zeros(64), np.linspace(0.0, 10.0, 64))
+    order_spectrum(np.zeros(64), np.linspace(0.0, 10.0, 64))
     with pytest.raises(jaxtyping.TypeCheckError):
-        _order_spectrum(np.zeros(64), np.linspace(0.0, 10.0, 65))
+        order_spectrum(np.zeros(64), np.linspace(0.0, 10.0, 65))

@@ -32,20 +32,16 @@ from ._control import (
     ziegler_nichols_pi as ziegler_nichols_pi,
 )
 from ._covariance import block_covariance as block_covariance, time_blocks as time_blocks
-from ._data import (
-    Dataset as Dataset,
-    DatasetError as DatasetError,
-    FrictionExperiment as FrictionExperiment,
-    load_config as load_config,
-    load_dataset as load_dataset,
-    make_friction_experiment as make_friction_experiment,
-    write_dataset as write_dataset,
-)
-from ._diagnose import Diagnosis as Diagnosis, covariate_drifts as covariate_drifts, diagnose as diagnose_effects  # noqa: F401 (public alias)
+from ._data import Dataset as Dataset, DatasetError as DatasetError, load_config as load_config, load_dataset as load_dataset
+from ._dataset_write import write_dataset as write_dataset
+from ._diagnose import Diagnosis as Diagnosis, diagnose as diagnose_effects  # noqa: F401 (public alias)
 from ._effects import EFFECT_NAMES as EFFECT_NAMES, MAX_ORDER as MAX_ORDER, Effects as Effects
+from ._evidence import covariate_drifts as covariate_drifts
 from ._experiment import (
     Experiment as Experiment,
+    FrictionExperiment as FrictionExperiment,
     make_experiment as make_experiment,
+    make_friction_experiment as make_friction_experiment,
     select_experiments as select_experiments,
     stack_experiments as stack_experiments,
     take_experiments as take_experiments,

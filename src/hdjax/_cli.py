@@ -135,7 +135,7 @@ def _run_command(command: str, dataset, config: dict, out: pathlib.Path, log) ->
         else:
             from ._diagnose_report import run_diagnose as run
     elif command == "sensitivity":
-        from ._sensitivity import run_sensitivity as run
+        from ._sensitivity_workflow import run_sensitivity as run
     else:
         from ._tune import run_tune as run
     run(dataset, config, out, log=log)

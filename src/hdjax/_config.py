@@ -13,7 +13,7 @@ tune: {plants: 6}
 
 Each workflow module keeps its options and their defaults in a `DEFAULTS` dict
 (`hdjax._identify.DEFAULTS` for `fit`, `hdjax._diagnose_report.DEFAULTS`,
-`hdjax._sensitivity.DEFAULTS`, `hdjax._tune.DEFAULTS`) and reads its section with `section_options`.
+`hdjax._sensitivity_workflow.DEFAULTS`, `hdjax._tune.DEFAULTS`) and reads its section with `section_options`.
 The commands check the whole file first (`validate_config`), so a misspelt key fails before any
 work, whichever command reads it.
 """
@@ -87,7 +87,7 @@ def all_defaults() -> dict[str, dict]:
     """Every config section's options and defaults, keyed by section (imports the workflows)."""
     from ._diagnose_report import DEFAULTS as diagnose
     from ._identify import DEFAULTS as fit
-    from ._sensitivity import DEFAULTS as sensitivity
+    from ._sensitivity_workflow import DEFAULTS as sensitivity
     from ._tune import DEFAULTS as tune
 
     return {"fit": fit, "diagnose": diagnose, "sensitivity": sensitivity, "tune": tune}

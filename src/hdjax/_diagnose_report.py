@@ -8,8 +8,9 @@ import time
 from ._artifacts import effects_to_dict
 from ._config import section_options
 from ._data import Dataset
-from ._diagnose import covariate_drifts, diagnose
+from ._diagnose import diagnose
 from ._effects import EFFECT_NAMES, MODEL_FORM_NAMES
+from ._evidence import covariate_drifts
 from ._io import atomic_write_json, atomic_write_text
 from ._paper_id import identify_paper
 from ._plant import Simulator

@@ -1,4 +1,5 @@
-"""Measured experiments as array PyTrees, one per record; batches are padded and masked."""
+"""Measured experiments as array PyTrees, one per record (`Experiment` for locked and free-motion
+tests, `FrictionExperiment` for friction-only records); batches are padded and masked."""
 
 import dataclasses
 from collections.abc import Sequence
@@ -178,3 +179,64 @@ def unstack_experiments(batch: Experiment) -> list[Experiment]:
         one = jax.tree.map(lambda v: v[i], batch)
         out.append(one.first(int(np.asarray(batch.mask[i]).sum())))
     return out
+
+
+class FrictionExperiment(eqx.Module):
+    """One friction record: friction torque against velocity (SI units), for fitting eq. 9 alone.
+
+    **Attributes:**
+
+    - `time`: sample times (s), uniform step.
+    - `velocity`: velocity of the side the friction acts on (rad/s; wave generator for eq. 9).
+    - `friction_torque`: measured friction torque (N·m).
+    - `position`: angle (rad); zeros where not measured.
+    - `has_position`: 1.0 when `position` was measured, else 0.0.
+    - `start_time`: time since the session began (s), 0 when not given.
+    - `mask`: True on real samples, False on padding.
+
+    A stacked batch (`stack_experiments`) has a leading experiment axis on every field (`*exp`).
+    """
+
+    time: Float[Array, "*exp time"]
+    velocity: Float[Array, "*exp time"]
+    friction_torque: Float[Array, "*exp time"]
+    position: Float[Array, "*exp time"]
+    has_position: Float[Array, "*exp"]
+    start_time: Float[Array, "*exp"]
+    mask: Bool[Array, "*exp time"]
+
+    @property
+    def n_samples(self) -> int:
+        return int(np.sum(np.asarray(self.mask)))
+
+
+def make_friction_experiment(
+    time, velocity, friction_torque, *, position=None, start_time: float = 0.0
+) -> FrictionExperiment:
+    """Build a `FrictionExperiment` from 1-D arrays: time (s), velocity (rad/s), friction torque
+    (N·m) and optionally position (rad); `start_time` (s) since the session began."""
+    arrays = {"time": time, "velocity": velocity, "friction_torque": friction_torque}
+    if position is not None:
+        arrays["position"] = position
+    arrays = {k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()}
+    n = len(arrays["time"])
+    for k, v in arrays.items():
+        if v.ndim != 1 or len(v) != n:
+            raise ValueError(
+                f"`make_friction_experiment`: `{k}` must be 1-D with {n} samples like `time`, got shape {v.shape}."
+            )
+        if not np.all(np.isfinite(v)):
+            raise ValueError(
+                f"`make_friction_experiment`: `{k}` has NaN or inf at sample {int(np.argmin(np.isfinite(v)))}."
+            )
+    if n < 3:
+        raise ValueError(f"`make_friction_experiment`: need at least 3 samples, got {n}.")
+    return FrictionExperiment(
+        time=jnp.asarray(arrays["time"]),
+        velocity=jnp.asarray(arrays["velocity"]),
+        friction_torque=jnp.asarray(arrays["friction_torque"]),
+        position=jnp.asarray(arrays.get("position", np.zeros(n))),
+        has_position=jnp.asarray(1.0 if position is not None else 0.0),
+        start_time=jnp.asarray(float(start_time)),
+        mask=jnp.ones(n, dtype=bool),
+    )

@@ -44,9 +44,8 @@ import optimistix as optx
 import scipy.signal
 
 from ._covariance import inflated_covariance, robust_covariance, time_blocks
-from ._data import FrictionExperiment
 from ._effects import THERMAL_TAU
-from ._experiment import stack_experiments
+from ._experiment import FrictionExperiment, stack_experiments
 from ._friction import (
     FRICTION_NAMES,
     HARMONIC_SLOTS,

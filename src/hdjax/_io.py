@@ -21,12 +21,16 @@ def _clean(obj):
 
 
 def atomic_write_text(path, text: str) -> pathlib.Path:
+    """Write `text` (UTF-8, line ends as given) to `path`: a temporary file in the same folder,
+    flushed to disk, then renamed over `path`. The folder is created if needed."""
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
             f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

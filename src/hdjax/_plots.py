@@ -20,7 +20,7 @@ from ._fit import CHANNELS
 from ._identify import hysteresis_curves
 from ._io import atomic_savefig
 from ._model import Parameters
-from ._sensitivity import ABLATIONS, CHANNEL_SYMBOL, CHANNEL_UNITS, _short
+from ._sensitivity import ABLATIONS, CHANNEL_SYMBOL, CHANNEL_UNITS
 from ._tune import CONTROLLERS, LABELS
 
 
@@ -123,7 +123,7 @@ def _information_heatmap(out, names, info, ok, files, modes, figs: list[str]) ->
     norm = LogNorm(vmin=max(finite.min(), finite.max() * 1e-8), vmax=finite.max()) if finite.size else None
     im = ax.imshow(np.ma.masked_invalid(M), aspect="auto", cmap="viridis", norm=norm, interpolation="nearest")
     ax.set_yticks(range(len(names)), names)
-    ax.set_xticks(range(len(order)), [_short(files[j]) for j in order], rotation=90, fontsize=6)
+    ax.set_xticks(range(len(order)), [pathlib.Path(files[j]).stem for j in order], rotation=90, fontsize=6)
     if 0 < n_cons < len(order):
         ax.axvline(n_cons - 0.5, color="w", lw=2)
     ax.set_xlabel(f"experiment (constrained: first {n_cons}, free: last {len(order) - n_cons})")

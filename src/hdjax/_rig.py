@@ -39,7 +39,7 @@ from typing import Any
 import equinox as eqx
 import numpy as np
 
-from ._data import write_dataset
+from ._dataset_write import write_dataset
 from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR, THERMAL_TAU, Effects
 from ._experiment import Experiment, make_experiment, stack_experiments
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
