@@ -10,7 +10,14 @@ effects and, for periodic effects, orders), false findings on clean datasets, wr
 the time per dataset.
 
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
-[--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]`.
+[--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]
+[--low-speed lugre] [--noise per_record]`.
+
+`--low-speed lugre` and `--noise per_record` draw the datasets from a variant of the bench (a LuGre
+low-speed law with a stiction bump instead of exact stick–slip; sensor noise scaled with each
+record's range instead of one level per sensor, as the generator of issue 18's first test did):
+a check that the loop's rules were not tuned to the default bench. Keep such datasets apart
+(`--datasets`): `_matches` does not tell the variants apart.
 """
 
 import argparse
@@ -121,6 +128,10 @@ def main() -> int:
     ap.add_argument("--rodas3-jacobians", action="store_true",
                     help="Jacobians with exact tangents through the simulator's Rodas3 (jacobian_solver=None; the "
                          "default until the twentieth session, 2026-11-27) instead of Ros34PW2(stiff_part=plant_stiff_part)")
+    ap.add_argument("--low-speed", default="stick_slip", choices=("stick_slip", "lugre"),
+                    help="the bench's low-speed friction law (default: exact stick-slip with breakaway)")
+    ap.add_argument("--noise", default="per_sensor", choices=("per_sensor", "per_record"),
+                    help="sensor noise: one level per sensor (default) or scaled with each record's range")
     args = ap.parse_args()
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
@@ -132,7 +143,7 @@ def main() -> int:
             folder = pathlib.Path(args.datasets or tmp) / f"seed_{case['seed']}"
             if not _matches(folder, case):
                 make_dataset(folder, drive=case["drive"], seed=case["seed"], n_locked=N_LOCKED, n_free=N_FREE, duration=DURATION,
-                             effects=case["effects"] or None)
+                             effects=case["effects"] or None, low_speed=args.low_speed, noise=args.noise)
             ds = load_dataset(folder)
         exps = [ds.experiments[i] for i in ds.dynamic_indices()]
         t0 = time.perf_counter()
@@ -145,7 +156,8 @@ def main() -> int:
         right = set(found) == set(truth) and all(truth[k] == found[k] for k in truth if k in PERIODIC)
         row = {"seed": case["seed"], "drive": case["drive"], "hidden": truth, "named": found, "right": right,
                "model_form": [m["assumption"] for m in d.model_form], "time_s": round(dt, 1),
-               "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()}}
+               "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
+               "bench": {"low_speed": args.low_speed, "noise": args.noise}}
         rows.append(row)
         print(json.dumps(row), flush=True)
     n = len(rows)
