@@ -839,8 +839,12 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     mode_dchi = {md: float(np.sum(d[modes == md])) for md in mode_gains}
     # consistency over records: most held-out experiments of the mode where it acts must improve
     # (misfit that one term absorbs in a few records is no finding)
+    improved_in = {md: float(np.mean(d[modes == md] > 0)) for md in mode_gains}
     acting = max(mode_gains, key=mode_gains.__getitem__)
-    improved = float(np.mean(d[modes == acting] > 0))
+    if rule.consistency_in == "any_acting":  # a mode where it gains beyond the effect size, consistent first
+        large_modes = [md for md in mode_gains if mode_gains[md] > rule.min_relative_gain] or [acting]
+        acting = max(large_modes, key=lambda md: (rule.consistent(improved_in[md]), mode_gains[md]))
+    improved = improved_in[acting]
     large = max(mode_gains.values()) > rule.min_relative_gain or rule.drift_is_large(drift_share)
     significant = bool(np.all(sse_after < sse_before) and large
                        and dchi > chance and dchi_rest > chance
@@ -1136,6 +1140,7 @@ def diagnose(
     tb_route: bool = True,
     readapt_after_form: bool = True,
     two_stage_periodic: bool = True,
+    consistency_in: str = OUTPUT_ERROR_RULES.consistency_in,
     log=lambda *_: None,
 ) -> Diagnosis:
     """Find the SPEC §4 effects that the data show beyond the paper's model (see module docstring).
@@ -1167,7 +1172,9 @@ def diagnose(
     of every (experiment, channel) by its RMS under the current model where that exceeds 1 (misfit
     the model cannot explain counts as noise of that record, so no record's misfit dominates the
     screening); `min_improved_fraction` of the held-out experiments of the mode where a candidate
-    acts must improve. `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
+    acts must improve (`consistency_in`: that mode is the one where it gains most, "largest_gain", or
+    any mode where it gains beyond `min_relative_gain`, "any_acting"; see `Significance`).
+    `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
     (re-whitened by their own noise model), computing only columns not seen yet.
 
     **Returns:** a `Diagnosis` with findings (most important first), evidence, the extended model,
@@ -1184,7 +1191,7 @@ def diagnose(
     candidates, model_form = _check_names(candidates, model_form, cross_validation)
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
-                               min_improved_fraction=min_improved_fraction)
+                               min_improved_fraction=min_improved_fraction, consistency_in=consistency_in)
     batch = stack_experiments(experiments)
     n_exp = len(experiments)
     sigma = noise_levels(batch)
