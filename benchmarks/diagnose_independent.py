@@ -137,6 +137,7 @@ def main() -> int:
                          "gains beyond the effect size, not only in the mode where it gains most)")
     args = ap.parse_args()
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
+    consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
     rows = []
     for case in plan(args.n, args.first):
@@ -153,7 +154,7 @@ def main() -> int:
         paper = identify_paper(exps, ds.drive)
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
                      two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
-                     consistency_in="any_acting" if args.consistency_any_mode else "largest_gain",
+                     consistency_in=consistency_in,
                      log=print if args.log else (lambda *_: None))
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
@@ -162,7 +163,7 @@ def main() -> int:
                "model_form": [m["assumption"] for m in d.model_form], "time_s": round(dt, 1),
                "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
                "bench": {"low_speed": args.low_speed, "noise": args.noise},
-               "consistency_in": "any_acting" if args.consistency_any_mode else "largest_gain"}
+               "consistency_in": consistency_in}
         rows.append(row)
         print(json.dumps(row), flush=True)
     n = len(rows)
