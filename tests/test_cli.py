@@ -199,3 +199,23 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
         trajectory_simulator({**opts, "solver": "euler"})
     with pytest.raises(ValueError, match=r"fit\.trajectory\.substeps"):
         trajectory_simulator({**opts, "solver": "velocity_implicit", "substeps": 0})
+
+
+def test_read_target_turns_dataset_warnings_into_notes(tmp_path):
+    """An extra CSV column (in two files) and an unknown key of the drive block are accepted; the command
+    gets each message once as a note for its `warning:` line, and no Python warning escapes
+    (`filterwarnings = error` would turn one into a failure here)."""
+    folder = tmp_path / "rig"
+    folder.mkdir()
+    rows = "\n".join(f"{0.01 * i:.2f},0.1,0.2,0.3,25" for i in range(10))
+    for name in ("a.csv", "b.csv"):
+        (folder / name).write_text("time,current,motor_velocity,torque,temperature\n" + rows + "\n")
+    (folder / "dataset.yaml").write_text(
+        "name: t\ndrive:\n  gear_ratio: 160\n  torque_constant: 0.1815\n  gearbox: CSD-25\n"
+        "experiments:\n  - file: a.csv\n    mode: constrained\n  - file: b.csv\n    mode: constrained\n")
+    dataset, config, notes = _cli.read_target(str(folder))
+    assert len(dataset.experiments) == 2 and config == {}
+    assert len(notes) == 3, notes
+    assert sum("temperature" in n for n in notes) == 2
+    assert any("a.csv" in n for n in notes) and any("b.csv" in n for n in notes)
+    assert any("gearbox" in n and "drive" in n for n in notes)

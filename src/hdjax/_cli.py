@@ -12,6 +12,7 @@ import os
 import pathlib
 import sys
 import textwrap
+import warnings
 
 COMMANDS = {
     "fit": (
@@ -141,6 +142,23 @@ def _run_command(command: str, dataset, config: dict, out: pathlib.Path, log) ->
     run(dataset, config, out, log=log)
 
 
+def read_target(target: str):
+    """`resolve_target(target)` for a command: (dataset, config dict, notes). What the reader
+    accepts but ignores (extra CSV columns, unknown keys: `DatasetWarning`) comes back as `notes`,
+    each message once, for the command to say as a plain `warning:` line on stderr and in run.log,
+    instead of a Python warning that points into the command's own file; other warnings pass on."""
+    from ._data import DatasetWarning, resolve_target
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DatasetWarning)
+        dataset, config = resolve_target(target)
+    notes = list(dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, DatasetWarning)))
+    for w in caught:
+        if not issubclass(w.category, DatasetWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return dataset, dict(config or {}), notes
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run `hdjax COMMAND TARGET [options]`; `argv` without the program name (default:
     `sys.argv[1:]`). Returns the exit status: 0 done, 2 bad input."""
@@ -156,13 +174,12 @@ def main(argv: list[str] | None = None) -> int:
     use_host_devices()  # every CPU core simulates its share of the experiments
     jax.config.update("jax_enable_x64", True)
     from ._config import ConfigError, validate_config
-    from ._data import DatasetError, resolve_target
+    from ._data import DatasetError
     from ._html import write_report_html
     from ._progress import RunLog
 
     try:
-        dataset, config = resolve_target(args.target)
-        config = dict(config or {})
+        dataset, config, notes = read_target(args.target)
         validate_config(config, source=f"{args.target}")
     except (DatasetError, ConfigError) as e:
         print(f"{prog}: bad input: {e}", file=sys.stderr)
@@ -173,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     out = pathlib.Path(args.out) if args.out else default_out(command, args.target)
     with RunLog(quiet=args.quiet, path=out / "run.log") as log:
         log._write(f"{prog} {args.target} --out {out}")
+        for note in notes:
+            log.warning(f"{prog}: warning: {note}")
         try:
             _run_command(command, dataset, config, out, log)
         except (DatasetError, ValueError) as e:

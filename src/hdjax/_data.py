@@ -238,20 +238,20 @@ def _read_yaml(path: pathlib.Path, what: str) -> Any:
     try:
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
-        raise _error(path, None, f"{what} does not exist", "Check the path.") from None
+        raise dataset_error(path, None, f"{what} does not exist", "Check the path.") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise _error(path, None, f"{what} cannot be read ({e})", "Make it a readable UTF-8 text file.") from None
+        raise dataset_error(path, None, f"{what} cannot be read ({e})", "Make it a readable UTF-8 text file.") from None
     try:
         return yaml.load(text, Loader=_Loader)
     except yaml.MarkedYAMLError as e:
         mark = e.problem_mark or e.context_mark
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else None
         problem = " ".join(str(x) for x in (e.context, e.problem) if x)
-        raise _error(
+        raise dataset_error(
             path, where, f"YAML syntax error: {problem}", "Fix the YAML there (indentation, `key: value` pairs, quotes)."
         ) from None
     except yaml.YAMLError as e:
-        raise _error(path, None, f"YAML syntax error: {e}", "Fix the YAML syntax.") from None
+        raise dataset_error(path, None, f"YAML syntax error: {e}", "Fix the YAML syntax.") from None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -259,7 +259,9 @@ def _read_yaml(path: pathlib.Path, what: str) -> Any:
 # ----------------------------------------------------------------------------------------------
 
 
-def _error(path, where: str | None, what: str, fix: str) -> DatasetError:
+def dataset_error(path, where: str | None, what: str, fix: str) -> DatasetError:
+    """The one form of every dataset message, reading and writing alike (`hdjax._dataset_write`):
+    `path[, where]: what. fix`, on one line."""
     loc = str(path) + (f", {where}" if where else "")
     msg = f"{loc}: {what}. {fix}"
     return DatasetError(" ".join(msg.split()))
@@ -298,7 +300,7 @@ def _dataset_yaml_path(folder_or_yaml) -> pathlib.Path:
     if p.is_dir():
         y = p / DATASET_FILE
         if not y.is_file():
-            raise _error(
+            raise dataset_error(
                 y,
                 None,
                 f"no `{DATASET_FILE}` in the dataset folder",
@@ -307,7 +309,7 @@ def _dataset_yaml_path(folder_or_yaml) -> pathlib.Path:
             )
         return y.resolve()
     if not p.exists():
-        raise _error(p, None, "dataset folder or YAML does not exist", "Check the path.")
+        raise dataset_error(p, None, "dataset folder or YAML does not exist", "Check the path.")
     return p.resolve()
 
 
@@ -316,7 +318,7 @@ def _drive_number(doc: dict, key: str, yaml_path, *, required: bool, positive: b
     drive = doc["drive"]
     if key not in drive:
         if required:
-            raise _error(
+            raise dataset_error(
                 yaml_path,
                 _yaml_where(doc, "drive", "drive"),
                 f"`drive.{key}` ({unit}) is missing{_misspelled(key, [k for k in drive if k not in _DRIVE_KEYS])}; "
@@ -327,7 +329,7 @@ def _drive_number(doc: dict, key: str, yaml_path, *, required: bool, positive: b
     v = drive[key]
     if not _is_number(v) or (positive and v <= 0) or (not positive and v < 0):
         need = "a positive" if positive else "a non-negative"
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(drive, key, f"drive.{key}"),
             f"`drive.{key}` ({unit}) is {v!r}, not {need} finite number" + (f" (required {why})" if positive else ""),
@@ -340,7 +342,7 @@ def _parse_drive(doc: dict, yaml_path, modes: list[str]) -> Drive | None:
     dynamic = [m for m in modes if m in ("constrained", "free")]
     if "drive" not in doc or doc["drive"] is None:
         if dynamic:
-            raise _error(
+            raise dataset_error(
                 yaml_path,
                 "`drive`" + _misspelled("drive", [k for k in doc if k not in _TOP_KEYS]),
                 f"the `drive` block is missing but the dataset has {dynamic[0]} experiments",
@@ -350,7 +352,7 @@ def _parse_drive(doc: dict, yaml_path, modes: list[str]) -> Drive | None:
         return None
     drive = doc["drive"]
     if not isinstance(drive, dict):
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(doc, "drive", "drive"),
             f"`drive` must be a mapping, got {type(drive).__name__} {drive!r}",
@@ -375,12 +377,12 @@ def _parse_drive(doc: dict, yaml_path, modes: list[str]) -> Drive | None:
     return Drive(gear_ratio=gear, torque_constant=km, load_inertia=0.0 if jload is None else jload)
 
 
-def _resolve_member(folder: pathlib.Path, file: str, yaml_path, where: str) -> pathlib.Path:
+def resolve_member(folder: pathlib.Path, file: str, yaml_path, where: str) -> pathlib.Path:
     """`folder/file`, refusing absolute paths and paths that escape `folder` (checked on the
     normalised path, so symlinked data files inside the folder are fine)."""
     rel = pathlib.PurePath(file)
     if rel.is_absolute() or pathlib.PureWindowsPath(file).is_absolute() or file.startswith("~"):
-        raise _error(
+        raise dataset_error(
             yaml_path,
             where,
             f"file `{file}` is an absolute path",
@@ -390,14 +392,14 @@ def _resolve_member(folder: pathlib.Path, file: str, yaml_path, where: str) -> p
     try:
         full.relative_to(folder)
     except ValueError:
-        raise _error(
+        raise dataset_error(
             yaml_path,
             where,
             f"file `{file}` resolves to {full}, outside the dataset folder {folder}",
             "Move the CSV into the dataset folder (or a subfolder) and give its path relative to dataset.yaml.",
         ) from None
     if full == folder:
-        raise _error(yaml_path, where, f"file `{file}` names the dataset folder itself", "Name a CSV file.")
+        raise dataset_error(yaml_path, where, f"file `{file}` names the dataset folder itself", "Name a CSV file.")
     return full
 
 
@@ -450,7 +452,7 @@ def _read_dataset_doc(yaml_path: pathlib.Path) -> dict:
     misspelled known ones."""
     doc = _read_yaml(yaml_path, "dataset YAML")
     if not isinstance(doc, dict):
-        raise _error(
+        raise dataset_error(
             yaml_path,
             None,
             f"the top level must be a mapping with `name`, `drive` and `experiments`, got {type(doc).__name__}",
@@ -469,7 +471,7 @@ def _read_dataset_doc(yaml_path: pathlib.Path) -> dict:
 def _experiment_entries(doc: dict, yaml_path: pathlib.Path) -> list:
     """The `experiments` list, refused when missing, not a list or empty."""
     if "experiments" not in doc:
-        raise _error(
+        raise dataset_error(
             yaml_path,
             "`experiments`" + _misspelled("experiments", [k for k in doc if k not in _TOP_KEYS]),
             "the `experiments` list is missing",
@@ -477,14 +479,14 @@ def _experiment_entries(doc: dict, yaml_path: pathlib.Path) -> list:
         )
     entries = doc["experiments"]
     if not isinstance(entries, list):
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(doc, "experiments", "experiments"),
             f"`experiments` must be a list, got {type(entries).__name__}",
             "Write each experiment as a list item `- file: <csv>` with `mode: ...` under it.",
         )
     if not entries:
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(doc, "experiments", "experiments"),
             "the `experiments` list is empty",
@@ -499,7 +501,7 @@ def _parse_entry(doc: dict, i: int, entry, folder: pathlib.Path, yaml_path: path
     updated); warns about unknown keys."""
     field = f"experiments[{i}]"
     if not isinstance(entry, dict):
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(doc, "experiments", field),
             f"experiment entry {i} is {entry!r}, not a mapping",
@@ -519,7 +521,7 @@ def _parse_entry(doc: dict, i: int, entry, folder: pathlib.Path, yaml_path: path
         ("mode", f"Add `mode:` with one of {', '.join(MODES)}."),
     ):
         if key not in entry or entry[key] is None:
-            raise _error(
+            raise dataset_error(
                 yaml_path,
                 _yaml_where(entry, None, f"{field}.{key}"),
                 f"experiment entry {i} has no `{key}`{_misspelled(key, unknown)}",
@@ -531,7 +533,7 @@ def _parse_entry(doc: dict, i: int, entry, folder: pathlib.Path, yaml_path: path
     if start is None:
         start = 0.0
     if not _is_number(start) or start < 0:
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(entry, "start_time", f"{field}.start_time"),
             f"`start_time` is {start!r}, not a finite non-negative number",
@@ -545,14 +547,14 @@ def _parse_entry(doc: dict, i: int, entry, folder: pathlib.Path, yaml_path: path
 def _check_file_and_mode(file, mode, entry: dict, field: str, yaml_path: pathlib.Path) -> None:
     """Refuse a `file` that is not a non-empty string and a `mode` outside `MODES`."""
     if not isinstance(file, str) or not file.strip():
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(entry, "file", f"{field}.file"),
             f"`file` must be a non-empty path string, got {file!r}",
             "Give the CSV path relative to dataset.yaml.",
         )
     if mode not in MODES:
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(entry, "mode", f"{field}.mode"),
             f"unknown mode {mode!r}{_did_you_mean(str(mode), MODES)}",
@@ -562,16 +564,16 @@ def _check_file_and_mode(file, mode, entry: dict, field: str, yaml_path: pathlib
 
 def _entry_path(folder: pathlib.Path, file: str, entry: dict, field: str, yaml_path: pathlib.Path, seen: dict):
     """The CSV path of an entry, inside `folder`, listed once (`seen`) and existing."""
-    path = _resolve_member(folder, file, yaml_path, _yaml_where(entry, "file", f"{field}.file"))
+    path = resolve_member(folder, file, yaml_path, _yaml_where(entry, "file", f"{field}.file"))
     if path in seen:
-        raise _error(
+        raise dataset_error(
             yaml_path,
             _yaml_where(entry, "file", f"{field}.file"),
             f"file `{file}` is listed twice (also as experiments[{seen[path]}])",
             "List each CSV once; copy the file if you really mean to use the same record twice.",
         )
     if not path.is_file():
-        raise _error(
+        raise dataset_error(
             path,
             f"named in {yaml_path} {_yaml_where(entry, 'file', f'{field}.file')}",
             "the CSV file does not exist",
@@ -605,7 +607,7 @@ def _read_truth(folder: pathlib.Path) -> dict | None:
     if truth_path.is_file():
         truth = _read_yaml(truth_path, "truth YAML")
         if truth is not None and not isinstance(truth, dict):
-            raise _error(
+            raise dataset_error(
                 truth_path,
                 None,
                 f"the top level must be a mapping, got {type(truth).__name__}",
@@ -633,12 +635,12 @@ def _read_csv(path: pathlib.Path, mode: str) -> dict[str, np.ndarray]:
     required, _ = COLUMNS[mode]
     header, header_line, rows, lines = _csv_rows(path)
     if header is None:
-        raise _error(path, None, "the CSV is empty", f"Write a header row ({', '.join(required)}) and the samples.")
+        raise dataset_error(path, None, "the CSV is empty", f"Write a header row ({', '.join(required)}) and the samples.")
     names = [h.strip() for h in header]
     used = _check_header(path, names, header_line, mode)
     data = _parse_cells(path, rows, lines, names, used)
     cols = {n: data[:, c] for c, n in enumerate(used)}
-    _check_time(path, cols["time"], lines)
+    check_time(path, cols["time"], lines)
     return cols
 
 
@@ -662,13 +664,13 @@ def _csv_rows(path: pathlib.Path) -> tuple[list[str] | None, int, list[list[str]
                 rows.append(row)
                 lines.append(reader.line_num)
     except UnicodeDecodeError as e:
-        raise _error(path, None, f"not UTF-8 text ({e})", "Save the CSV as UTF-8 (or plain ASCII).") from None
+        raise dataset_error(path, None, f"not UTF-8 text ({e})", "Save the CSV as UTF-8 (or plain ASCII).") from None
     except csv.Error as e:
         # csv.Error comes only from reading rows, so `reader` is bound
         line = f"line {reader.line_num}"  # pyright: ignore[reportPossiblyUnboundVariable]
-        raise _error(path, line, f"malformed CSV ({e})", "Fix the quoting on that line.") from None
+        raise dataset_error(path, line, f"malformed CSV ({e})", "Fix the quoting on that line.") from None
     except OSError as e:
-        raise _error(path, None, f"cannot be read ({e})", "Check the file's permissions.") from None
+        raise dataset_error(path, None, f"cannot be read ({e})", "Check the file's permissions.") from None
     return header, header_line, rows, lines
 
 
@@ -677,7 +679,7 @@ def _check_header(path: pathlib.Path, names: list[str], header_line: int, mode: 
     or missing required column and warns about columns it ignores."""
     required, optional = COLUMNS[mode]
     if all(_is_float(h) for h in names):
-        raise _error(
+        raise dataset_error(
             path,
             f"line {header_line}",
             "there is no header row (the first line holds numbers)",
@@ -685,7 +687,7 @@ def _check_header(path: pathlib.Path, names: list[str], header_line: int, mode: 
         )
     for j, n in enumerate(names):
         if not n:
-            raise _error(
+            raise dataset_error(
                 path,
                 f"line {header_line}, column {j + 1}",
                 "empty column name in the header",
@@ -693,7 +695,7 @@ def _check_header(path: pathlib.Path, names: list[str], header_line: int, mode: 
             )
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
-        raise _error(
+        raise dataset_error(
             path,
             f"line {header_line}, column(s) " + ", ".join(f"`{d}`" for d in dupes),
             "duplicate column name(s) in the header",
@@ -721,7 +723,7 @@ def _check_required_columns(path: pathlib.Path, names: list[str], header_line: i
         hint = ""
         if len(names) == 1 and any(c in names[0] for c in ";\t|"):
             hint = " The header looks like it uses a delimiter other than a comma; hdjax reads comma-separated files."
-        raise _error(
+        raise dataset_error(
             path,
             f"line {header_line} (header)",
             f"{mode} experiments need column(s) {', '.join(parts)}, which the header lacks; "
@@ -740,7 +742,7 @@ def _parse_cells(path: pathlib.Path, rows: list[list[str]], lines: list[int], na
     data = np.empty((len(rows), len(used)))
     for r, (row, line) in enumerate(zip(rows, lines)):
         if len(row) != len(names):
-            raise _error(
+            raise dataset_error(
                 path,
                 f"line {line}",
                 f"the row has {len(row)} field(s) but the header has {len(names)}",
@@ -752,7 +754,7 @@ def _parse_cells(path: pathlib.Path, rows: list[list[str]], lines: list[int], na
                 v = float(cell)
             except ValueError:
                 what = "empty cell" if not cell else f"non-numeric value {cell!r}"
-                raise _error(
+                raise dataset_error(
                     path,
                     f"line {line}, column `{n}`",
                     what,
@@ -760,7 +762,7 @@ def _parse_cells(path: pathlib.Path, rows: list[list[str]], lines: list[int], na
                     "hdjax does not drop or fill in samples.",
                 ) from None
             if not math.isfinite(v):
-                raise _error(
+                raise dataset_error(
                     path,
                     f"line {line}, column `{n}`",
                     f"value {cell!r} is {'NaN' if math.isnan(v) else 'inf'}",
@@ -771,10 +773,10 @@ def _parse_cells(path: pathlib.Path, rows: list[list[str]], lines: list[int], na
     return data
 
 
-def _check_time(path, time: np.ndarray, lines: list[int]) -> None:
+def check_time(path, time: np.ndarray, lines: list[int]) -> None:
     """At least 3 samples, strictly increasing, uniform step within `_MAX_JITTER`."""
     if len(time) < 3:
-        raise _error(
+        raise dataset_error(
             path,
             "column `time`",
             f"only {len(time)} data row(s)",
@@ -784,7 +786,7 @@ def _check_time(path, time: np.ndarray, lines: list[int]) -> None:
     bad = np.flatnonzero(dt <= 0)
     if bad.size:
         k = int(bad[0]) + 1
-        raise _error(
+        raise dataset_error(
             path,
             f"line {lines[k]}, column `time`",
             f"time is not strictly increasing ({float(time[k - 1])!r} s on line {lines[k - 1]}, then {float(time[k])!r} s)",
@@ -795,7 +797,7 @@ def _check_time(path, time: np.ndarray, lines: list[int]) -> None:
     bad = np.flatnonzero(jitter > _MAX_JITTER)
     if bad.size:
         k = int(bad[0]) + 1
-        raise _error(
+        raise dataset_error(
             path,
             f"line {lines[k]}, column `time`",
             f"uneven time step: {float(dt[k - 1])!r} s from line {lines[k - 1]}, against a median step of {step!r} s "
@@ -816,17 +818,17 @@ def load_config(path: str | os.PathLike) -> dict:
     absolute `pathlib.Path` (its existence is not checked here)."""
     p = pathlib.Path(path).expanduser()
     if not p.is_file():
-        raise _error(p, None, "config file does not exist", "Check the path.")
+        raise dataset_error(p, None, "config file does not exist", "Check the path.")
     doc = _read_yaml(p, "config YAML")
     if not isinstance(doc, dict):
-        raise _error(
+        raise dataset_error(
             p,
             None,
             f"the top level must be a mapping, got {type(doc).__name__}",
             "Write `dataset: <folder>` and the options as `key: value` pairs.",
         )
     if "dataset" not in doc or doc["dataset"] is None:
-        raise _error(
+        raise dataset_error(
             p,
             "`dataset`" + _misspelled("dataset", list(doc)),
             "the config has no `dataset` key",
@@ -834,7 +836,7 @@ def load_config(path: str | os.PathLike) -> dict:
         )
     ds = doc["dataset"]
     if not isinstance(ds, (str, os.PathLike)) or not str(ds).strip():
-        raise _error(
+        raise dataset_error(
             p,
             _yaml_where(doc, "dataset", "dataset"),
             f"`dataset` must be a folder path string, got {ds!r}",
@@ -852,9 +854,9 @@ def resolve_target(target: str | os.PathLike) -> tuple[Dataset, dict]:
     if p.is_dir():
         return load_dataset(p), {}
     if not p.exists():
-        raise _error(p, None, "target does not exist", "Pass a dataset folder, its dataset.yaml, or a config YAML.")
+        raise dataset_error(p, None, "target does not exist", "Pass a dataset folder, its dataset.yaml, or a config YAML.")
     if p.suffix.lower() not in (".yaml", ".yml"):
-        raise _error(
+        raise dataset_error(
             p,
             None,
             "target is neither a folder nor a .yaml/.yml file",
@@ -866,7 +868,7 @@ def resolve_target(target: str | os.PathLike) -> tuple[Dataset, dict]:
     config = load_config(p)
     folder = config["dataset"]
     if not folder.exists():
-        raise _error(
+        raise dataset_error(
             p,
             _yaml_where(doc, "dataset", "dataset"),
             f"the dataset folder {folder} does not exist",

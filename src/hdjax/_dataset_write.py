@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ._data import DATASET_FILE, TRUTH_FILE, DatasetError, _check_time, _error, _resolve_member
+from ._data import DATASET_FILE, TRUTH_FILE, DatasetError, check_time, dataset_error, resolve_member
 from ._experiment import MODES, Experiment, FrictionExperiment
 from ._io import atomic_write_text
 from ._model import Drive
@@ -133,27 +133,27 @@ def _write_targets(folder: pathlib.Path, yaml_path: pathlib.Path, experiments: l
     for i, (exp, mode, file) in enumerate(zip(experiments, modes, files)):
         where = f"`files[{i}]`"
         if mode not in MODES:
-            raise _error(yaml_path, f"`modes[{i}]`", f"unknown mode {mode!r}", f"Use one of: {', '.join(MODES)}.")
+            raise dataset_error(yaml_path, f"`modes[{i}]`", f"unknown mode {mode!r}", f"Use one of: {', '.join(MODES)}.")
         want = FrictionExperiment if mode == "friction" else Experiment
         if not isinstance(exp, want):
-            raise _error(
+            raise dataset_error(
                 yaml_path,
                 f"`experiments[{i}]`",
                 f"mode {mode!r} needs a {want.__name__}, got {type(exp).__name__}",
                 "Pass matching experiments and modes.",
             )
         if mode != "friction" and isinstance(exp, Experiment) and (float(exp.free) == 1.0) != (mode == "free"):
-            raise _error(
+            raise dataset_error(
                 yaml_path,
                 f"`modes[{i}]`",
                 f"mode {mode!r} disagrees with the experiment's `free` flag {float(exp.free)}",
                 "Pass the mode the experiment was built with.",
             )
         if not isinstance(file, str) or not file.strip():
-            raise _error(yaml_path, where, f"file name {file!r} is not a non-empty string", "Give a relative path.")
-        path = _resolve_member(folder, file, yaml_path, where)
+            raise dataset_error(yaml_path, where, f"file name {file!r} is not a non-empty string", "Give a relative path.")
+        path = resolve_member(folder, file, yaml_path, where)
         if path in targets:
-            raise _error(yaml_path, where, f"file `{file}` is given twice", "Give each experiment its own file.")
+            raise dataset_error(yaml_path, where, f"file `{file}` is given twice", "Give each experiment its own file.")
         targets.append(path)
     return targets
 
@@ -178,7 +178,7 @@ def _experiment_columns(exp, mode: str, i: int, yaml_path: pathlib.Path) -> dict
     ones of `mode` and the measured optional ones."""
     mask = np.asarray(exp.mask, dtype=bool)
     if mask.ndim != 1:
-        raise _error(
+        raise dataset_error(
             yaml_path, f"`experiments[{i}]`", "the experiment is batched", "Unstack it into single experiments."
         )
 
@@ -208,13 +208,13 @@ def _write_experiment_csv(path: pathlib.Path, cols: dict[str, np.ndarray], digit
     would refuse."""
     for k, v in cols.items():
         if not np.all(np.isfinite(v)):
-            raise _error(
+            raise dataset_error(
                 path,
                 f"column `{k}`",
                 f"refusing to write NaN or inf (sample {int(np.argmin(np.isfinite(v)))})",
                 "Pass finite data.",
             )
-    _check_time(path, cols["time"], list(range(2, len(cols["time"]) + 2)))
+    check_time(path, cols["time"], list(range(2, len(cols["time"]) + 2)))
     atomic_write_text(path, _csv_text(cols, digits))
 
 

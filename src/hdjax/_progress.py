@@ -147,6 +147,12 @@ class RunLog:
         self._write(line)
         print(line, file=sys.stderr)
 
+    def warning(self, line: str) -> None:
+        """A line for stderr (unless quiet) and run.log: input that was accepted but partly ignored."""
+        self._write(line)
+        if not self.quiet:
+            print(line, file=sys.stderr)
+
     def _write(self, line: str) -> None:
         with self._lock:
             if self._file is not None:
