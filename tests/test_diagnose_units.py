@@ -147,3 +147,38 @@ def test_friction_rules_need_every_fold_up_to_four_and_all_but_one_of_five():
             need = folds if folds < 5 else folds - 1
             assert FRICTION_RULES.consistent(improved / folds) == (improved >= need), (folds, improved)
     assert OUTPUT_ERROR_RULES == Significance() and FRICTION_RULES.min_relative_gain == 0.01
+
+
+def test_forward_selection_names_the_best_significant_candidate_each_round():
+    """The greedy loop both diagnoses run (`forward_selection`): each round names the significant
+    candidate that gains most, the pool shrinks by it (and by what `retest` drops), and the loop
+    stops when nothing is significant or at `max_findings`."""
+    from hdjax._significance import forward_selection
+
+    # per round, candidate -> (significant, gain); the model "learns" what was accepted
+    table = [
+        {"a": (True, 0.10), "b": (True, 0.30), "c": (False, 0.50), "d": (False, -0.02)},
+        {"a": (True, 0.08), "c": (True, 0.06), "d": (False, 0.0)},
+        {"c": (False, 0.01), "d": (False, 0.0)},
+    ]
+    pools, named = [], []
+
+    def screen(pool):
+        pools.append(list(pool))
+        return {c: {"significant": table[len(pools) - 1][c][0], "gain": table[len(pools) - 1][c][1]} for c in pool}
+
+    def accept(best, scores):
+        named.append(best)
+
+    rounds = forward_selection(["a", "b", "c", "d"], screen, accept)
+    assert named == ["b", "a"] and len(rounds) == 3  # c gains most in round 1 but is not significant
+    assert pools == [["a", "b", "c", "d"], ["a", "c", "d"], ["c", "d"]]
+
+    pools.clear(), named.clear()
+    forward_selection(["a", "b", "c", "d"], screen, accept, retest=lambda s: s["gain"] > 0)
+    assert pools[1] == ["a", "c"] and named == ["b", "a"]  # d lost in round 1: not screened again
+
+    pools.clear(), named.clear()
+    assert len(forward_selection(["a", "b", "c", "d"], screen, accept, max_findings=1)) == 1 and named == ["b"]
+    pools.clear(), named.clear()
+    assert forward_selection(["a", "b"], screen, accept, max_findings=0) == [] and pools == []

@@ -134,7 +134,7 @@ from ._model import Drive, Parameters
 from ._parameterisation import Entry, Parameterisation, parameterisation
 from ._plant import PLANT_W_METHOD, Simulator, is_fixed_cost, simulate
 from ._sharding import experiment_mesh, for_each_experiment, map_experiments, pad_experiments
-from ._significance import OUTPUT_ERROR_RULES, Significance
+from ._significance import OUTPUT_ERROR_RULES, Significance, forward_selection
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1052,67 +1052,78 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
                    log, readapt_after_form: bool = True, two_stage_periodic: bool = True) -> None:
     """The greedy rounds (module docstring, steps 3–5), recorded in `out`: each round re-estimates the
     noise model, takes one Jacobian (w.r.t. the base, the accepted effects and every candidate) at
-    the current model, refines base + accepted effects, screens and accepts the best candidate;
-    round 0 first screens the base model's own assumptions (model_form) and adopts every
+    the current model, refines base + accepted effects, screens and accepts the best candidate
+    (`hdjax._significance.forward_selection`, the friction-only diagnosis's loop too);
+    round 1 first screens the base model's own assumptions (model_form) and adopts every
     significant one, then (with `readapt_after_form`) re-estimates the noise model, takes a fresh
     Jacobian and re-fits base + adjustments, and screens the effects against that base model. Stops when
     nothing is significant, no candidate is left, or `max_findings` (with the `n_found_before`
     torque-balance findings) are reached."""
     n_base = loop.n_base
-    for rnd in range(max_findings + 1):
-        stages = ("model_form", "effects") if rnd == 0 and model_form else ("effects",)
-        if not remaining:
-            break
+    if not remaining:
+        return
+    rnd = 0
+    state: dict = {}  # the round's Jacobian, its columns, the accepted columns, the held-out residuals
+
+    def prepare(form_pool: list[str], pool: list[str]) -> None:
         chosen_idx = [j for c in out.adopted + out.chosen for j in cand_idx[c]]
         active = list(range(n_base)) + chosen_idx
-        sel = active + [j for c in (model_form if rnd == 0 else []) + remaining for j in cand_idx[c]]
+        sel = active + [j for c in form_pool + pool for j in cand_idx[c]]
         log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
         proc, r_white0 = _round_noise_model(loop, misfit_scaling=misfit_scaling)
         J = loop.jacobian(loop.z, sel, reuse=reuse_jacobian and rnd > 0)
         if rnd == 0:
             _noise_evidence(loop, proc, r_white0, evidence, log)
-        J = _refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log)
+        state.update(J=_refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log), sel=sel,
+                     chosen_idx=chosen_idx)
 
-        stop = False
-        for stage in stages:
-            form_round = stage == "model_form"
-            pool = model_form if form_round else remaining
-            ff = _FoldFits.at(loop, J, sel, fit_folds, two_stage=two_stage_periodic)
-            scores, raw_before, raw_after_of = _screen(loop, ff, pool, chosen_idx, cand_idx, folds,
-                                                       n_simulated=len(pool) if form_round else confirm_top, rule=rule, log=log)
-            if out.base_res is None:
-                out.base_res = raw_before
-            out.rounds.append(scores)
-            sig = [c for c in scores if scores[c]["significant"]]
-            if not sig:
-                if form_round:
-                    continue
-                stop = True
-                break
-            if form_round:
-                accept = sorted(sig, key=lambda c: -scores[c]["gain"])
-                out.form_items += [_form_item(loop, c, scores[c], raw_before, raw_after_of, len(out.rounds) - 1) for c in accept]
-            else:
-                accept = [max(sig, key=lambda c: scores[c]["gain"])]
-            _accept(loop, J, sel, [j for c in accept for j in cand_idx[c]])
+    def screen_stage(pool: list[str], n_simulated: int) -> dict[str, dict]:
+        ff = _FoldFits.at(loop, state["J"], state["sel"], fit_folds, two_stage=two_stage_periodic)
+        scores, raw_before, raw_after_of = _screen(loop, ff, pool, state["chosen_idx"], cand_idx, folds,
+                                                   n_simulated=n_simulated, rule=rule, log=log)
+        if out.base_res is None:
+            out.base_res = raw_before
+        out.rounds.append(scores)
+        state.update(raw_before=raw_before, raw_after_of=raw_after_of)
+        return scores
+
+    # round 1: the base model's own assumptions first, every significant one adopted
+    prepare(model_form, remaining)
+    if model_form:
+        scores = screen_stage(model_form, len(model_form))
+        accept = sorted([c for c in scores if scores[c]["significant"]], key=lambda c: -scores[c]["gain"])
+        if accept:
+            out.form_items += [_form_item(loop, c, scores[c], state["raw_before"], state["raw_after_of"], len(out.rounds) - 1)
+                               for c in accept]
+            _accept(loop, state["J"], state["sel"], [j for c in accept for j in cand_idx[c]])
             log(f"  accepted {', '.join(accept)}")
-            if form_round:
-                out.adopted.extend(accept)
-                chosen_idx = [j for c in out.adopted + out.chosen for j in cand_idx[c]]
-                if readapt_after_form:
-                    # the effects are screened against the adjusted base model: its noise model
-                    # (misfit scaling) re-estimated and base + adjustments re-fitted first, or the
-                    # base model's own correction to the adjustment dominates every candidate's fit
-                    _round_noise_model(loop, misfit_scaling=misfit_scaling)
-                    J = _refine(loop, loop.jacobian(loop.z, sel), sel, list(range(n_base)) + chosen_idx,
-                                steps=refine_steps, jacobians=refine_jacobians, log=log)
-                continue
-            best = accept[0]
-            out.chosen.append(best)
-            out.findings.append(_finding(loop, best, scores[best], raw_before, raw_after_of[best], len(out.rounds) - 1))
-            remaining.remove(best)
-        if stop or len(out.chosen) + n_found_before >= max_findings:
-            break
+            out.adopted.extend(accept)
+            state["chosen_idx"] = [j for c in out.adopted + out.chosen for j in cand_idx[c]]
+            if readapt_after_form:
+                # the effects are screened against the adjusted base model: its noise model
+                # (misfit scaling) re-estimated and base + adjustments re-fitted first, or the
+                # base model's own correction to the adjustment dominates every candidate's fit
+                _round_noise_model(loop, misfit_scaling=misfit_scaling)
+                state["J"] = _refine(loop, loop.jacobian(loop.z, state["sel"]), state["sel"],
+                                     list(range(n_base)) + state["chosen_idx"], steps=refine_steps,
+                                     jacobians=refine_jacobians, log=log)
+
+    # then the effects, one per round; round 1 screens them with the Jacobian it already has
+    def screen(pool: list[str]) -> dict[str, dict]:
+        if rnd > 0:
+            prepare([], pool)
+        return screen_stage(pool, confirm_top)
+
+    def accept_effect(best: str, scores: dict[str, dict]) -> None:
+        nonlocal rnd
+        _accept(loop, state["J"], state["sel"], cand_idx[best])
+        log(f"  accepted {best}")
+        out.chosen.append(best)
+        out.findings.append(_finding(loop, best, scores[best], state["raw_before"], state["raw_after_of"][best],
+                                     len(out.rounds) - 1))
+        rnd += 1
+
+    forward_selection(remaining, screen, accept_effect, max_findings=max_findings - n_found_before)
 
 
 def diagnose(

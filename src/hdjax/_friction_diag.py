@@ -6,7 +6,8 @@ Cross-validation folds (`friction_folds`): with one record, `N_BLOCKS` contiguou
 dealt round-robin into at most `MAX_FOLDS` groups. Every sample is tested exactly once, so the
 held-out predictions of all folds make one held-out record.
 
-Greedy forward selection (`diagnose_friction`): starting from eq. 9, each applicable candidate of
+Greedy forward selection (`diagnose_friction`, through the dynamic diagnosis's own
+`hdjax._significance.forward_selection`): starting from eq. 9, each applicable candidate of
 `CANDIDATES` is added to the current model and refitted on every fold (all eq. 9 parameters free
 too, started from the current fold fit). A candidate is *significant* under `hdjax._significance.FRICTION_RULES`
 (the rules' type is shared with the dynamic diagnosis): the held-out RMS falls by at least
@@ -38,7 +39,7 @@ from ._friction_fit import (
     vector_to_params,
 )
 from ._model import Smoothing, friction_basis, friction_parts
-from ._significance import FRICTION_RULES, Significance
+from ._significance import FRICTION_RULES, Significance, forward_selection
 from ._smooth import smooth_step
 
 MAX_FOLDS = 5
@@ -324,26 +325,28 @@ def diagnose_friction(problem: FrictionProblem, *, min_gain: float = FRICTION_RU
     max_order = _max_order(problem)
     log(f"  eq. 9 on {len(rows.labels)} cross-validation folds")
     base = cv_eq9(problem, rows)
-    current, findings, rounds = base, [], []
-    while remaining:
+    current, findings = base, []
+
+    def screen(pool: list[str]) -> dict[str, dict]:
         scores = {}
-        for name in remaining:
+        for name in pool:
             folds = [_add(problem, f, name, rows.train[b], current.fit.prediction[b], max_order)
                      for b, f in enumerate(current.folds)]
             res = _cv_fit(problem, rows, folds)
             ok, gain, frac = _significant(current, res, rule)
-            scores[name] = (ok, gain, frac, res)
+            scores[name] = {"significant": ok, "gain": gain, "folds_improved": frac, "result": res}
             log(f"  + {name}: held-out RMS {current.rms:.4g} → {res.rms:.4g} N·m ({gain:+.1%}, better in {frac:.0%} of folds)")
-        rounds.append({k: {"significant": v[0], "relative_reduction": v[1], "folds_improved": v[2],
-                           "heldout_rms": v[3].rms} for k, v in scores.items()})
-        ok = [k for k in remaining if scores[k][0]]
-        if not ok:
-            break
-        best = max(ok, key=lambda k: scores[k][1])
-        _, gain, frac, res = scores[best]
-        findings.append({"effect": best, "before": current, "after": res, "relative_reduction": gain,
-                         "folds_improved": frac})
-        current = res
-        # later rounds retest only candidates that lowered the held-out error in this one
-        remaining = [k for k in remaining if k != best and scores[k][1] > 0]
+        return scores
+
+    def accept(best: str, scores: dict[str, dict]) -> None:
+        nonlocal current
+        s = scores[best]
+        findings.append({"effect": best, "before": current, "after": s["result"], "relative_reduction": s["gain"],
+                         "folds_improved": s["folds_improved"]})
+        current = s["result"]
+
+    # later rounds retest only candidates that lowered the held-out error in the round before
+    scored = forward_selection(remaining, screen, accept, retest=lambda s: s["gain"] > 0)
+    rounds = [{k: {"significant": v["significant"], "relative_reduction": v["gain"], "folds_improved": v["folds_improved"],
+                   "heldout_rms": v["result"].rms} for k, v in scores.items()} for scores in scored]
     return FrictionDiagnosis(rows, base, current, findings, rounds, skipped, max_order)

@@ -9,9 +9,14 @@ improve (`min_improved_fraction` = 0.8: every fold with up to 4 folds, all but o
 chance-level terms (Δχ² in sensor-noise units) need a noise model, which friction-only records
 (joint torque minus a rigid-body model, no sensor noise level) do not give; they are not used
 there.
+
+Both loops are one greedy forward selection (`forward_selection`): each round screens the
+candidates left against the current model, names the significant one that gains most, adds it,
+and goes on until nothing is significant.
 """
 
 import dataclasses
+from collections.abc import Callable, Sequence
 
 #: A finding may make one kind of test (locked or free) worse by at most this share of the held-out
 #: Δχ² it gains on the other (and at most the chance level when that is larger). A true order-2
@@ -68,3 +73,38 @@ class Significance:
 OUTPUT_ERROR_RULES = Significance()
 #: The friction-only diagnosis's rules (`hdjax.diagnose_friction` defaults).
 FRICTION_RULES = Significance(min_relative_gain=0.01, min_improved_fraction=0.8)
+
+
+def forward_selection(
+    candidates: Sequence[str],
+    screen: Callable[[list[str]], dict[str, dict]],
+    accept: Callable[[str, dict[str, dict]], None],
+    *,
+    max_findings: int | None = None,
+    retest: Callable[[dict], bool] = lambda score: True,
+) -> list[dict[str, dict]]:
+    """Greedy forward selection, the loop of both diagnoses.
+
+    Each round calls `screen(pool)` with the candidates left; it returns, per candidate it scored,
+    a dict with at least `"significant"` (bool) and `"gain"` (held-out relative gain). The
+    significant candidate with the largest gain is named (ties: the first in `screen`'s order) and
+    handed to `accept(name, scores)`, which adds it to the model. The next round's pool is the rest,
+    less those whose score fails `retest` (the friction-only loop retests only candidates that
+    gained). Stops when nothing is significant, the pool is empty or `max_findings` are named
+    (None: no limit).
+
+    **Returns:** every round's scores, in order (the last round named nothing unless a limit ended
+    the loop).
+    """
+    pool, rounds, named = list(candidates), [], 0
+    while pool and (max_findings is None or named < max_findings):
+        scores = screen(pool)
+        rounds.append(scores)
+        significant = [c for c in scores if scores[c]["significant"]]
+        if not significant:
+            break
+        best = max(significant, key=lambda c: scores[c]["gain"])
+        accept(best, scores)
+        named += 1
+        pool = [c for c in pool if c != best and retest(scores[c])]
+    return rounds
