@@ -1266,7 +1266,11 @@ def diagnose(
     tr1 = loop.prob.trajectories(jnp.asarray(loop.tile(z_cur)), p_base, batch) if findings else tr0
     traces = {"torque_base": np.asarray(tr0.torque), "torque_extended": np.asarray(tr1.torque),
               "torsion_extended": np.asarray(tr1.torsion), "motor_position": np.asarray(tr1.motor_position)}
-    left = unexplained(batch, tr1, m, modes, sigma, loop.r_raw, loop.r)
+    named_at = {}
+    for f in findings:
+        for k in f.get("orders") or []:
+            named_at.setdefault(int(k), []).append(f["effect"])
+    left = unexplained(batch, tr1, m, modes, sigma, loop.r_raw, loop.r, named_at)
     timing["total"] = time.perf_counter() - t0
     base_n = loop.nrmse(base_res) if base_res is not None else {}
     return Diagnosis(findings=findings, model_form=form_items, unexplained=left, baseline={"heldout_nrmse": base_n},

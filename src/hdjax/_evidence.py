@@ -258,17 +258,25 @@ def residual_evidence(batch, traj, m, modes, sigma, p: Parameters, drive: Drive)
                                for w, k, a, t, a_si in peak_list]}, orders
 
 
-def unexplained(batch, traj, m, modes, sigma, r_meas, r_white) -> list[dict]:
+def unexplained(batch, traj, m, modes, sigma, r_meas, r_white, named_at: dict[int, list[str]] | None = None) -> list[dict]:
     """What the final model still leaves: residual order-spectrum peaks, and channels whose residual
     stays well above its noise (`r_meas`: residuals weighted by the sensor noise; `r_white`: the
-    same whitened by the noise model, unit RMS where only sensor and process noise are left)."""
+    same whitened by the noise model, unit RMS where only sensor and process noise are left).
+    `named_at`: order → the periodic findings at that order (a peak left there is what their fit
+    does not remove, not an effect that no candidate explained)."""
     out = []
+    named_at = named_at or {}
     _, left = spectral_peaks(batch, traj, m, modes, sigma)
     for where, k, a, thr, a_si in sorted(left, key=lambda x: -x[2] / x[3])[:5]:
+        if named_at.get(k):
+            why = (f"left after the finding(s) {', '.join(named_at[k])} at this order: their fitted term does not "
+                   "remove all of it (its amplitude or phase differs from record to record, or the simulated "
+                   "wave-generator angle drifts from the true one in free motion)")
+        else:
+            why = "no candidate effect at this order gave a significant held-out gain"
         out.append({"description": f"{where.replace('/', ' ')} residual periodic at order {k} per wave-generator turn",
                     "evidence": f"order-{k} amplitude {a_si:.3g} (SI units; {a:.3g} of the per-record residual RMS against a "
-                                f"detection threshold of {thr:.3g}); no candidate effect at this order gave a "
-                                "significant held-out gain"})
+                                f"detection threshold of {thr:.3g}); {why}"})
     for md in ("constrained", "free"):
         sel = modes == md
         if not sel.any():
