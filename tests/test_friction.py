@@ -73,7 +73,7 @@ def test_eq9_recovery():
         assert abs(est[k] - TRUTH[k]) < 0.05 * abs(TRUTH[k]), (k, est[k], TRUTH[k])
     # per-experiment estimates exist and agree (the paper's consistency)
     for k in ("Tvp", "Tsp", "Tsn"):
-        per = [float(getattr(fit.params(b, pr), k)) for b in range(1, E + 1)]
+        per = [fit.params(b, pr).eq9()[k] for b in range(1, E + 1)]
         assert np.std(per) / abs(np.mean(per)) < 0.05
     rms = rms_stats(fit.prediction[0], pr.T, pr.mask.astype(float))["rms"]
     assert rms < 1.1 * NOISE

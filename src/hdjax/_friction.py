@@ -39,7 +39,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._effects import THERMAL_TAU, harmonic_sum, thermal_factor
-from ._model import PARAMETER_UNITS, Smoothing, _as_float, friction_parts
+from ._model import PARAMETER_UNITS, Parameters, Smoothing, _as_float, friction_parts
 from ._smooth import smooth_sign, smooth_step
 
 FRICTION_NAMES = ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1", "Tss2")
@@ -57,34 +57,47 @@ def _f3(x):
     return jnp.broadcast_to(jnp.asarray(x, dtype=float), (HARMONIC_SLOTS,))
 
 
-class FrictionParameters(eqx.Module):
-    """Eq. 9 (SI units, `FRICTION_UNITS`) plus the extension parameters; all array leaves.
+#: Table I values that friction-only data do not determine (compliance and inertia): NaN in the
+#: `Parameters` a friction-only model carries, so nothing can use them by mistake.
+_NOT_IDENTIFIED = {"alpha": float("nan"), "K1": float("nan"), "Tst": float("nan"), "Jeff": float("nan")}
 
+
+class FrictionParameters(eqx.Module):
+    """Eq. 9 plus the extension parameters of a friction-only model; all array leaves.
+
+    - `law`: the paper's `Parameters`; its eq. 9 fields (`FRICTION_NAMES`, SI units) are the
+      friction law, the same fields and the same `friction_parts` as the plant's. Friction-only
+      data do not determine α, K1, Tst, Jeff: they are NaN.
     - `ripple_sin`, `ripple_cos` (-): $\\epsilon_k\\cos\\phi_k$, $\\epsilon_k\\sin\\phi_k$ of
       `position_dependent_friction`, one per harmonic slot.
     - `torque_sin`, `torque_cos` (N·m): $b_k\\cos\\psi_k$, $b_k\\sin\\psi_k$ of `position_dependent_torque`.
     - `presliding_distance` (rad): $\\delta$ of `presliding_friction`.
     - `thermal_beta` (-), `thermal_tau` (s): $\\beta$, $\\tau$ of `thermal_drift`.
+
+    Built from the eq. 9 values by keyword (`FrictionParameters(Tvp=..., ..., Tss2=...,
+    ripple_sin=...)`); a fit's vector reaches them by the paths `"law.Tvp"` and so on.
     """
 
-    Tvp: Float[Array, ""] = eqx.field(converter=_as_float)
-    Tvn: Float[Array, ""] = eqx.field(converter=_as_float)
-    Tsp: Float[Array, ""] = eqx.field(converter=_as_float)
-    Tsn: Float[Array, ""] = eqx.field(converter=_as_float)
-    Tssp1: Float[Array, ""] = eqx.field(converter=_as_float)
-    Tssn1: Float[Array, ""] = eqx.field(converter=_as_float)
-    Tss2: Float[Array, ""] = eqx.field(converter=_as_float)
-    ripple_sin: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
-    ripple_cos: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
-    torque_sin: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
-    torque_cos: Float[Array, " 3"] = eqx.field(converter=_f3, default=0.0)
-    presliding_distance: Float[Array, ""] = eqx.field(converter=_as_float, default=1e-3)
-    thermal_beta: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
-    thermal_tau: Float[Array, ""] = eqx.field(converter=_as_float, default=THERMAL_TAU)
+    law: Parameters
+    ripple_sin: Float[Array, " 3"]
+    ripple_cos: Float[Array, " 3"]
+    torque_sin: Float[Array, " 3"]
+    torque_cos: Float[Array, " 3"]
+    presliding_distance: Float[Array, ""]
+    thermal_beta: Float[Array, ""]
+    thermal_tau: Float[Array, ""]
+
+    def __init__(self, *, Tvp, Tvn, Tsp, Tsn, Tssp1, Tssn1, Tss2, ripple_sin=0.0, ripple_cos=0.0, torque_sin=0.0,
+                 torque_cos=0.0, presliding_distance=1e-3, thermal_beta=0.0, thermal_tau=THERMAL_TAU):
+        self.law = Parameters(**_NOT_IDENTIFIED, Tvp=Tvp, Tvn=Tvn, Tsp=Tsp, Tsn=Tsn, Tssp1=Tssp1, Tssn1=Tssn1, Tss2=Tss2)
+        self.ripple_sin, self.ripple_cos = _f3(ripple_sin), _f3(ripple_cos)
+        self.torque_sin, self.torque_cos = _f3(torque_sin), _f3(torque_cos)
+        self.presliding_distance = _as_float(presliding_distance)
+        self.thermal_beta, self.thermal_tau = _as_float(thermal_beta), _as_float(thermal_tau)
 
     def eq9(self) -> dict[str, float]:
         """The seven eq. 9 values as Python floats."""
-        return {k: float(getattr(self, k)) for k in FRICTION_NAMES}
+        return {k: float(getattr(self.law, k)) for k in FRICTION_NAMES}
 
 
 class FrictionStructure(eqx.Module):
@@ -191,7 +204,7 @@ def friction_model_torque(
         return sg, up
 
     s, us = jax.lax.cond(structure.presliding > 0.5, with_state, without_state, None)
-    viscous, coulomb, stribeck = friction_parts(p, v, smoothing, direction=(s, us))
+    viscous, coulomb, stribeck = friction_parts(p.law, v, smoothing, direction=(s, us))
     viscous = viscous * thermal_factor(structure.thermal * p.thermal_beta, p.thermal_tau, start_time + t)
     ripple = has_position * harmonic_sum(theta, structure.ripple_orders, p.ripple_sin, p.ripple_cos)
     additive = has_position * harmonic_sum(theta, structure.torque_orders, p.torque_sin, p.torque_cos)

@@ -74,11 +74,11 @@ def friction_fit_summary(problem: FrictionProblem, *, train_fraction: float = TR
         notes.append(f"Tss2 fixed at {problem.Tss2:g} rad/s by the config (`fit.Tss2`).")
     for i, k in enumerate(FRICTION_NAMES):
         p0 = fit.params(0, problem)
-        value = float(getattr(p0, k))
+        value = float(getattr(p0.law, k))
         free0 = bool(fit.free[0][i])
         per, per_se = [], []
         for b in range(1, len(full.labels)):
-            pb = float(getattr(fit.params(b, problem), k))
+            pb = float(getattr(fit.params(b, problem).law, k))
             se = float(se_rows[b][i])
             determined = bool(fit.free[b][i]) and math.isfinite(se) and se < abs(pb)
             per.append(pb if determined else None)
@@ -242,8 +242,7 @@ def low_speed_summary(problem: FrictionProblem, why: str, *, train_fraction: flo
 
 
 def fit_params_dict(fit, b, problem) -> dict:
-    p = fit.params(b, problem)
-    return {k: float(getattr(p, k)) for k in FRICTION_NAMES}
+    return fit.params(b, problem).eq9()
 
 
 def run_fit(dataset: Dataset, config: dict, out, *, log=print) -> dict:
@@ -419,7 +418,7 @@ def friction_diagnosis_doc(problem: FrictionProblem, dataset_name: str, *, min_g
                              "rule": "significant when the pooled held-out RMS falls by at least min_gain and the "
                                      "held-out error falls in every fold (all but one with 5 or more folds)"},
         "rounds": d.rounds,
-        "extended_model": {"eq9": {k: float(getattr(fold_params(problem, fold), k)) for k in FRICTION_NAMES},
+        "extended_model": {"eq9": fold_params(problem, fold).eq9(),
                            "effects": ext_params,
                            "heldout_nrmse": {"friction_torque": d.final.nrmse}, "heldout_rms": d.final.rms,
                            "heldout_rms_lowpass_1hz": _lp(problem, d.final.heldout)},

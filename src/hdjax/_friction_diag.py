@@ -174,7 +174,7 @@ def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: 
     if name in ("position_dependent_friction", "position_dependent_torque"):
         p = fold_params(problem, fold)
         if name == "position_dependent_friction":
-            g = np.asarray(friction_parts(p, v, problem.smoothing)[1])  # the Coulomb part it modulates
+            g = np.asarray(friction_parts(p.law, v, problem.smoothing)[1])  # the Coulomb part it modulates
         else:
             g = np.ones_like(v)
         orders, coef = choose_orders(problem, theta, r, g, on, max_order=max_order)
@@ -228,7 +228,7 @@ def _start_delta(problem: FrictionProblem, fold: _Fold, w: np.ndarray) -> float:
     for g in range(len(grid)):
         s = S[g]
         us = smooth_step(s, STATE_SCALE)
-        A = np.asarray(friction_basis(vv, p.Tss2, problem.smoothing, direction=(s, us)))[on]
+        A = np.asarray(friction_basis(vv, p.law.Tss2, problem.smoothing, direction=(s, us)))[on]
         _, sse = _lstsq_gain(A, y)
         if sse < best:
             best, d_best = sse, grid[g]
@@ -240,7 +240,7 @@ def _start_thermal(problem: FrictionProblem, fold: _Fold, r, on, idx) -> tuple[f
     p = fold_params(problem, fold)
     v = problem.v[:, idx]
     ts = (np.asarray(problem.data.start_time)[:, None] + np.asarray(problem.data.time))[:, idx]
-    visc = np.asarray(friction_parts(p, v, problem.smoothing)[0])
+    visc = np.asarray(friction_parts(p.law, v, problem.smoothing)[0])
     span = max(float(np.ptp(ts[on])), 1e-6)
     t0 = float(np.min(ts[on]))
     best = (np.inf, 0.0, span)

@@ -61,15 +61,15 @@ M = HARMONIC_SLOTS
 #: The fit's vector: eq. 9 (torques scaled, Tss2 on a log scale), the harmonic slots of the two
 #: position extensions (scaled), the presliding distance and thermal τ (log), thermal β (scaled).
 FRICTION_ENTRIES = (
-    Entry("Tvp"), Entry("Tvn"), Entry("Tsp"), Entry("Tsn"), Entry("Tssp1"), Entry("Tssn1"),
-    Entry("Tss2", transform="log"),
+    Entry("law.Tvp"), Entry("law.Tvn"), Entry("law.Tsp"), Entry("law.Tsn"), Entry("law.Tssp1"), Entry("law.Tssn1"),
+    Entry("law.Tss2", transform="log"),
     Entry("ripple_sin", M), Entry("ripple_cos", M), Entry("torque_sin", M), Entry("torque_cos", M),
     Entry("presliding_distance", transform="log"), Entry("thermal_beta"), Entry("thermal_tau", transform="log"),
 )  # fmt: skip
-SLOT = slots(FRICTION_ENTRIES)  # vector index / slice of each field
+SLOT = {k.removeprefix("law."): v for k, v in slots(FRICTION_ENTRIES).items()}  # vector index / slice of each field
 IDX = {k: v for k, v in SLOT.items() if isinstance(v, int)}  # the scalar fields' indices
 N_PARAMS = vector_size(FRICTION_ENTRIES)
-LOG_INDICES = [IDX[e.field] for e in FRICTION_ENTRIES if e.transform == "log"]
+LOG_INDICES = [IDX[e.field.removeprefix("law.")] for e in FRICTION_ENTRIES if e.transform == "log"]
 #: The (sin, cos) coefficient fields of each periodic extension.
 HARMONIC_FIELDS = {"position_dependent_friction": ("ripple_sin", "ripple_cos"),
                    "position_dependent_torque": ("torque_sin", "torque_cos")}
@@ -86,16 +86,17 @@ def _tied(p: FrictionParameters, tie) -> FrictionParameters:
     """`p` with one direction's eq. 9 parameters copied from the other (`TIE_NEG_TO_POS`: the
     negative direction takes the positive one's; `TIE_POS_TO_NEG`: the reverse)."""
     neg, pos = tie == TIE_NEG_TO_POS, tie == TIE_POS_TO_NEG
+    q = p.law
     return eqx.tree_at(
-        lambda q: (q.Tvp, q.Tvn, q.Tsp, q.Tsn, q.Tssp1, q.Tssn1), p,
-        (jnp.where(pos, p.Tvn, p.Tvp), jnp.where(neg, p.Tvp, p.Tvn), jnp.where(pos, p.Tsn, p.Tsp),
-         jnp.where(neg, p.Tsp, p.Tsn), jnp.where(pos, p.Tssn1, p.Tssp1), jnp.where(neg, p.Tssp1, p.Tssn1)))  # fmt: skip
+        lambda m: (m.law.Tvp, m.law.Tvn, m.law.Tsp, m.law.Tsn, m.law.Tssp1, m.law.Tssn1), p,
+        (jnp.where(pos, q.Tvn, q.Tvp), jnp.where(neg, q.Tvp, q.Tvn), jnp.where(pos, q.Tsn, q.Tsp),
+         jnp.where(neg, q.Tsp, q.Tsn), jnp.where(pos, q.Tssn1, q.Tssp1), jnp.where(neg, q.Tssp1, q.Tssn1)))  # fmt: skip
 
 
 def vector_to_params(x, pmap: Parameterisation, tie) -> FrictionParameters:
     """Normalised vector (`N_PARAMS`,) to `FrictionParameters` through the problem's
     parameterisation, applying a direction tie."""
-    base = FrictionParameters(**dict.fromkeys(FRICTION_NAMES, 0.0))  # every field is replaced
+    base = FrictionParameters(**dict.fromkeys(FRICTION_NAMES, 0.0))  # every fitted field is replaced
     return _tied(pmap.to_model(x, base), tie)
 
 

@@ -126,11 +126,11 @@ def friction_basis(
 
 
 def friction_parts(
-    p, velocity: ArrayLike, smoothing: Smoothing = Smoothing(), *, direction: tuple[ArrayLike, ArrayLike] | None = None
+    p: Parameters, velocity: ArrayLike, smoothing: Smoothing = Smoothing(), *, direction: tuple[ArrayLike, ArrayLike] | None = None
 ) -> tuple[Float[Array, "..."], Float[Array, "..."], Float[Array, "..."]]:
     """Eq. 9 split into its (viscous, Coulomb, Stribeck) torques (N·m), for the extensions that
     act on one part (thermal drift on the viscous, position-dependent friction on the Coulomb
-    part). `p` carries the eq. 9 fields (`Parameters` or `FrictionParameters`); `direction` as
+    part). `p`: the eq. 9 fields of `Parameters` (a friction-only model's `FrictionParameters.law`); `direction` as
     in `friction_basis`."""
     b = friction_basis(velocity, p.Tss2, smoothing, direction=direction)
     return (b[..., 0] * p.Tvp + b[..., 1] * p.Tvn, b[..., 2] * p.Tsp + b[..., 3] * p.Tsn,

@@ -2,8 +2,9 @@ r"""One map between a model's fields and the flat vector an optimiser works on.
 
 Every fit, sensitivity and tuning loop of hdjax moves a flat vector $x$ and evaluates a model
 `eqx.Module` (`Parameters`, `Effects`, `FrictionParameters`, `TorqueGains`). A `Parameterisation`
-says, field by field (the *path* is the field's name; an array field takes as many vector slots
-as it has elements), how a slot of $x$ becomes a value:
+says, field by field (the *path* is the field's name, or a dotted path into a field that is
+itself a Module, e.g. `"law.Tvp"` of `FrictionParameters`; an array field takes as many vector
+slots as it has elements), how a slot of $x$ becomes a value:
 
 | transform | value | for |
 |---|---|---|
@@ -90,13 +91,13 @@ class Parameterisation(eqx.Module):
     def to_model(self, x: Float[Array, " vector"], base: M) -> M:
         """`base` with every field of the entries set from `x`."""
         vals = self.values(x)
-        return eqx.tree_at(lambda m: tuple(getattr(m, k) for k in self.fields), base, tuple(vals[k] for k in self.fields))
+        return eqx.tree_at(lambda m: tuple(_get(m, k) for k in self.fields), base, tuple(vals[k] for k in self.fields))
 
     def to_vector(self, model: eqx.Module) -> Float[Array, " vector"]:
         """The vector of `model`'s fields (inverse of `to_model`)."""
         out = []
         for e, at in self._slots():
-            v, s, o = jnp.asarray(getattr(model, e.field), dtype=float), self.scale[at], self.offset[at]
+            v, s, o = jnp.asarray(_get(model, e.field), dtype=float), self.scale[at], self.offset[at]
             if e.transform == "log":
                 out.append(jnp.log(v / s))
             elif e.transform == "logit":
@@ -106,6 +107,13 @@ class Parameterisation(eqx.Module):
             else:
                 out.append((v - o) / s)
         return jnp.concatenate([jnp.reshape(a, (-1,)) for a in out])
+
+
+def _get(model, path: str):
+    """The value at a field path (`"K1"`, or dotted into a sub-Module: `"law.Tvp"`)."""
+    for name in path.split("."):
+        model = getattr(model, name)
+    return model
 
 
 def _check(entries: tuple[Entry, ...], scale_shape, offset_shape) -> None:
