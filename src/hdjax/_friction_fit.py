@@ -66,7 +66,8 @@ FRICTION_ENTRIES = (
     Entry("ripple_sin", M), Entry("ripple_cos", M), Entry("torque_sin", M), Entry("torque_cos", M),
     Entry("presliding_distance", transform="log"), Entry("thermal_beta"), Entry("thermal_tau", transform="log"),
 )  # fmt: skip
-SLOT = {k.removeprefix("law."): v for k, v in slots(FRICTION_ENTRIES).items()}  # vector index / slice of each field
+#: Vector index / slice of each field, keyed by its name (the eq. 9 fields without their `law.` path).
+SLOT = {k.removeprefix("law."): v for k, v in slots(FRICTION_ENTRIES).items()}
 IDX = {k: v for k, v in SLOT.items() if isinstance(v, int)}  # the scalar fields' indices
 N_PARAMS = vector_size(FRICTION_ENTRIES)
 LOG_INDICES = [IDX[e.field.removeprefix("law.")] for e in FRICTION_ENTRIES if e.transform == "log"]
