@@ -1062,24 +1062,25 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
     n_base = loop.n_base
     if not remaining:
         return
-    rnd = 0
-    state: dict = {}  # the round's Jacobian, its columns, the accepted columns, the held-out residuals
+    state: dict = {}  # the round's Jacobian, its columns and the held-out residuals of its screening
+
+    def accepted_idx() -> list[int]:  # columns of the adopted adjustments and the effects found so far
+        return [j for c in out.adopted + out.chosen for j in cand_idx[c]]
 
     def prepare(form_pool: list[str], pool: list[str]) -> None:
-        chosen_idx = [j for c in out.adopted + out.chosen for j in cand_idx[c]]
-        active = list(range(n_base)) + chosen_idx
+        rnd = len(out.chosen)  # one effect found per round
+        active = list(range(n_base)) + accepted_idx()
         sel = active + [j for c in form_pool + pool for j in cand_idx[c]]
         log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
         proc, r_white0 = _round_noise_model(loop, misfit_scaling=misfit_scaling)
         J = loop.jacobian(loop.z, sel, reuse=reuse_jacobian and rnd > 0)
         if rnd == 0:
             _noise_evidence(loop, proc, r_white0, evidence, log)
-        state.update(J=_refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log), sel=sel,
-                     chosen_idx=chosen_idx)
+        state.update(J=_refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log), sel=sel)
 
     def screen_stage(pool: list[str], n_simulated: int) -> dict[str, dict]:
         ff = _FoldFits.at(loop, state["J"], state["sel"], fit_folds, two_stage=two_stage_periodic)
-        scores, raw_before, raw_after_of = _screen(loop, ff, pool, state["chosen_idx"], cand_idx, folds,
+        scores, raw_before, raw_after_of = _screen(loop, ff, pool, accepted_idx(), cand_idx, folds,
                                                    n_simulated=n_simulated, rule=rule, log=log)
         if out.base_res is None:
             out.base_res = raw_before
@@ -1098,30 +1099,27 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
             _accept(loop, state["J"], state["sel"], [j for c in accept for j in cand_idx[c]])
             log(f"  accepted {', '.join(accept)}")
             out.adopted.extend(accept)
-            state["chosen_idx"] = [j for c in out.adopted + out.chosen for j in cand_idx[c]]
             if readapt_after_form:
                 # the effects are screened against the adjusted base model: its noise model
                 # (misfit scaling) re-estimated and base + adjustments re-fitted first, or the
                 # base model's own correction to the adjustment dominates every candidate's fit
                 _round_noise_model(loop, misfit_scaling=misfit_scaling)
                 state["J"] = _refine(loop, loop.jacobian(loop.z, state["sel"]), state["sel"],
-                                     list(range(n_base)) + state["chosen_idx"], steps=refine_steps,
+                                     list(range(n_base)) + accepted_idx(), steps=refine_steps,
                                      jacobians=refine_jacobians, log=log)
 
     # then the effects, one per round; round 1 screens them with the Jacobian it already has
     def screen(pool: list[str]) -> dict[str, dict]:
-        if rnd > 0:
+        if out.chosen:
             prepare([], pool)
         return screen_stage(pool, confirm_top)
 
     def accept_effect(best: str, scores: dict[str, dict]) -> None:
-        nonlocal rnd
         _accept(loop, state["J"], state["sel"], cand_idx[best])
         log(f"  accepted {best}")
         out.chosen.append(best)
         out.findings.append(_finding(loop, best, scores[best], state["raw_before"], state["raw_after_of"][best],
                                      len(out.rounds) - 1))
-        rnd += 1
 
     forward_selection(remaining, screen, accept_effect, max_findings=max_findings - n_found_before)
 

@@ -72,13 +72,13 @@ def friction_fit_summary(problem: FrictionProblem, *, train_fraction: float = TR
         notes.append(note)
     if problem.Tss2 is not None:
         notes.append(f"Tss2 fixed at {problem.Tss2:g} rad/s by the config (`fit.Tss2`).")
+    eq9_rows = [fit.params(b, problem).eq9() for b in range(len(full.labels))]  # pooled, then each experiment
     for i, k in enumerate(FRICTION_NAMES):
-        p0 = fit.params(0, problem)
-        value = float(getattr(p0.law, k))
+        value = eq9_rows[0][k]
         free0 = bool(fit.free[0][i])
         per, per_se = [], []
         for b in range(1, len(full.labels)):
-            pb = float(getattr(fit.params(b, problem).law, k))
+            pb = eq9_rows[b][k]
             se = float(se_rows[b][i])
             determined = bool(fit.free[b][i]) and math.isfinite(se) and se < abs(pb)
             per.append(pb if determined else None)

@@ -66,11 +66,12 @@ FRICTION_ENTRIES = (
     Entry("ripple_sin", M), Entry("ripple_cos", M), Entry("torque_sin", M), Entry("torque_cos", M),
     Entry("presliding_distance", transform="log"), Entry("thermal_beta"), Entry("thermal_tau", transform="log"),
 )  # fmt: skip
+_PATH_SLOT = slots(FRICTION_ENTRIES)  # by field path ("law.Tvp", "ripple_sin", ...)
 #: Vector index / slice of each field, keyed by its name (the eq. 9 fields without their `law.` path).
-SLOT = {k.removeprefix("law."): v for k, v in slots(FRICTION_ENTRIES).items()}
+SLOT = {k.removeprefix("law."): v for k, v in _PATH_SLOT.items()}
 IDX = {k: v for k, v in SLOT.items() if isinstance(v, int)}  # the scalar fields' indices
 N_PARAMS = vector_size(FRICTION_ENTRIES)
-LOG_INDICES = [IDX[e.field.removeprefix("law.")] for e in FRICTION_ENTRIES if e.transform == "log"]
+LOG_INDICES = [_PATH_SLOT[e.field] for e in FRICTION_ENTRIES if e.transform == "log"]
 #: The (sin, cos) coefficient fields of each periodic extension.
 HARMONIC_FIELDS = {"position_dependent_friction": ("ripple_sin", "ripple_cos"),
                    "position_dependent_torque": ("torque_sin", "torque_cos")}
