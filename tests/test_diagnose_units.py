@@ -55,6 +55,29 @@ def test_significance_refuses_a_gain_that_rests_on_one_record():
     assert not s["significant"] and s["delta_chi2_without_best_experiment"] <= Significance().chance(2)
 
 
+def test_significance_refuses_an_effect_size_that_rests_on_one_record_of_its_mode():
+    """The pattern of a false `input_delay` on a clean independent-bench dataset of 12 locked and 4
+    free records (HD1, seed 6004, 2026-11-28): the free tests gain 19 %, all of it in one record (3
+    of 4 improve, two by a hair);
+    small gains on the locked tests carry the Δχ² without that record beyond chance. Without the
+    record, the free tests gain nothing: refused. The same total spread over the free records is
+    named."""
+    modes = np.array(["constrained"] * 12 + ["free"] * 4)
+    folds = np.arange(16) % 2
+    gains = [0.0] * 4 + [0.0, 0.03, 0.06, 0.0, 0.0, 0.0, 0.04, 0.05] + [0.002, 0.003, -0.01, 0.36]
+    before, after = _residuals(gains)
+    before[-1] *= 2.0  # the record that gains is also the one the base model fits worst
+    after[-1] *= 2.0
+    s = _judge(before, after, folds, modes, 1, Significance())
+    assert s["acting_mode"] == "free" and s["mode_gains"]["free"] > Significance().min_relative_gain
+    assert s["delta_chi2_without_best_experiment"] > Significance().chance(1)
+    assert s["acting_mode_gain_without_best"] < 0.0 and not s["significant"]
+    assert _judge(before, after, folds, modes, 1, Significance(min_gain_without_best=-1.0))["significant"]
+    before, after = _residuals([0.0] * 12 + [0.12, 0.1, 0.08, 0.14])
+    s = _judge(before, after, folds, modes, 1, Significance())
+    assert s["acting_mode_gain_without_best"] > Significance().min_gain_without_best and s["significant"]
+
+
 def test_significance_refuses_a_term_that_trades_one_kind_of_test_for_the_other():
     # locked tests gain 20 %, free tests lose 10 %: more than MODE_TRADE of the gain
     before, after = _residuals([0.2, 0.2, 0.2, 0.2, -0.1, -0.1, -0.1, -0.1])

@@ -69,7 +69,8 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    share of what a free value per record of the base parameters it changes would gain, at least
    `min_drift_share`, with its fitted sign physical in every held-out fit), far beyond the chance level of its parameter count
    (Δχ² > 10k + 50), also without the held-out experiment that gains most (a term that fits one
-   odd experiment is no finding), and neither the locked nor the free tests may get worse beyond
+   odd experiment is no finding; without it, the mode where the effect acts must still gain half
+   the effect size, `MIN_GAIN_WITHOUT_BEST`), and neither the locked nor the free tests may get worse beyond
    that chance level or a quarter of what the other gains (`MODE_TRADE`; a term that fits one kind
    of test at the other's expense explains no drive; these values are one `Significance`). The
    harm ratio (what the held-out experiments it makes worse lose over what
@@ -845,7 +846,15 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
         large_modes = [md for md in mode_gains if mode_gains[md] > rule.min_relative_gain] or [acting]
         acting = max(large_modes, key=lambda md: (rule.consistent(improved_in[md]), mode_gains[md]))
     improved = improved_in[acting]
-    large = max(mode_gains.values()) > rule.min_relative_gain or rule.drift_is_large(drift_share)
+    # and the effect size, too, not resting on one record: the acting mode without its experiment
+    # that gains most (`MIN_GAIN_WITHOUT_BEST`; not judged with a single experiment in that mode)
+    in_mode = modes == acting
+    d_m, e_m = d[in_mode], e_before[in_mode]
+    best = int(np.argmax(d_m))
+    gain_rest = float((np.sum(d_m) - d_m[best]) / (np.sum(e_m) - e_m[best])) if d_m.size > 1 else None
+    large = ((max(mode_gains.values()) > rule.min_relative_gain
+              and (gain_rest is None or gain_rest > rule.min_gain_without_best))
+             or rule.drift_is_large(drift_share))
     significant = bool(np.all(sse_after < sse_before) and large
                        and dchi > chance and dchi_rest > chance
                        and min(mode_dchi.values()) > -max(chance, rule.mode_trade * max(mode_dchi.values()))
@@ -853,7 +862,8 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     return dict(simulated=True, gain=float(gain), fold_gains=(1 - sse_after / sse_before).tolist(), delta_chi2=dchi,
                 delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
                 harm_ratio=harm, per_experiment_gain=(d / e_before).tolist(),
-                mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting, significant=significant)
+                mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
+                acting_mode_gain_without_best=gain_rest, significant=significant)
 
 
 #: Effects that change a base parameter from record to record (a drift over the session), with the
@@ -920,7 +930,9 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
         log(f"  {c:30s} held-out gain {'simulated' if s['simulated'] else 'predicted'} {s['gain']:+.3f}"
             + (f" (folds {np.round(s['fold_gains'], 3).tolist()}, modes "
                + ", ".join(f"{k} {v:+.3f}" for k, v in s["mode_gains"].items())
-               + f", harm ratio {s['harm_ratio']:.2f})" if s["simulated"] else "")
+               + f", harm ratio {s['harm_ratio']:.2f}"
+               + (f", {s['acting_mode']} without its best {s['acting_mode_gain_without_best']:+.3f}"
+                  if s["acting_mode_gain_without_best"] is not None else "") + ")" if s["simulated"] else "")
             + (f" (between-record share {drift:.2f})" if drift is not None else "")
             + (" significant" if s["significant"] else ""))
         if s["simulated"]:
