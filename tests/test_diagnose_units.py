@@ -58,10 +58,9 @@ def test_significance_refuses_a_gain_that_rests_on_one_record():
 def test_significance_refuses_an_effect_size_that_rests_on_one_record_of_its_mode():
     """The pattern of a false `input_delay` on a clean independent-bench dataset of 12 locked and 4
     free records (HD1, seed 6004, 2026-11-28): the free tests gain 19 %, all of it in one record (3
-    of 4 improve, two by a hair);
-    small gains on the locked tests carry the Δχ² without that record beyond chance. Without the
-    record, the free tests gain nothing: refused. The same total spread over the free records is
-    named."""
+    of 4 improve, two by a hair); small gains on the locked tests carry the Δχ² without that record
+    beyond chance. Without the record, the free tests gain nothing: refused. The same total spread
+    over the free records is named."""
     modes = np.array(["constrained"] * 12 + ["free"] * 4)
     folds = np.arange(16) % 2
     gains = [0.0] * 4 + [0.0, 0.03, 0.06, 0.0, 0.0, 0.0, 0.04, 0.05] + [0.002, 0.003, -0.01, 0.36]

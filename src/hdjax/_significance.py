@@ -8,8 +8,8 @@ effect size (`min_relative_gain` of the pooled held-out RMS) and the share of fo
 improve (`min_improved_fraction` = 0.8: every fold with up to 4 folds, all but one with 5). The
 chance-level terms (Δχ² in sensor-noise units) need a noise model, which friction-only records
 (joint torque minus a rigid-body model, no sensor noise level) do not give; they are not used
-there, nor is the per-mode rule `min_gain_without_best` (friction-only data have one mode; its
-folds must all improve).
+there, nor is the per-mode rule `min_gain_without_best` (friction-only data have one mode, judged
+by its folds).
 
 Both loops are one greedy forward selection (`forward_selection`): each round screens the
 candidates left against the current model, names the significant one that gains most, adds it,
