@@ -353,9 +353,33 @@ def campaign(
     J = station.total_inertia
     i_coulomb = max(float(station.truth.Tsp), float(station.truth.Tsn)) / Km
     i_rated = station.rated_current
-    profiles: list[CurrentProfile] = []
+    profiles = _locked_profiles(rng, station, t, ramp, n_constrained, duration, i_coulomb, i_rated)
 
-    # ------------------------------------------------------------------ constrained
+    # free motion: three regimes, drawn in this order, then interleaved through the session
+    groups = _allocate(n_free, {"low_velocity": 8, "plateau": 6, "high_velocity": 16})
+    if n_free >= 16:  # the issue's minimum counts for a full campaign
+        groups["low_velocity"] = max(groups["low_velocity"], 6)
+        groups["high_velocity"] = max(groups["high_velocity"], 10)
+        groups["plateau"] = n_free - groups["low_velocity"] - groups["high_velocity"]
+
+    free: list[tuple[str, str, np.ndarray, dict]] = [
+        *_low_velocity_currents(rng, station, t, ramp, groups["low_velocity"], Km),
+        *_plateau_currents(rng, t, ramp, groups["plateau"], duration, i_coulomb),
+        *_high_velocity_currents(rng, t, ramp, groups["high_velocity"], duration, dt, Km, J, i_coulomb),
+    ]
+    order = rng.permutation(len(free))  # interleave the regimes through the session
+    for j, k in enumerate(order):
+        kind, regime, i, info = free[k]
+        profiles.append(CurrentProfile(f"free_{j + 1:02d}_{kind}", "free", i, t, kind.removeprefix("slow_"),
+                                       regime, _plain(info)))  # fmt: skip
+    return profiles
+
+
+def _locked_profiles(rng, station: Station, t: np.ndarray, ramp: np.ndarray, n_constrained: int, duration: float,
+                     i_coulomb: float, i_rated: float) -> list[CurrentProfile]:
+    """`campaign`'s constrained (output-locked) profiles: sine, chirp, square and multisine currents
+    (see `campaign`); draws from `rng` in a fixed order."""
+    profiles: list[CurrentProfile] = []
     kinds = _kinds(n_constrained, ("sine", "chirp", "square", "multisine"))
     f_res = station.locked_resonance
     # peak currents per kind, log-spread from 2× the Coulomb current up to a quasi-static locked
@@ -405,16 +429,14 @@ def campaign(
             CurrentProfile(f"locked_{j + 1:02d}_{kind}", "constrained", i, t, kind, "locked", _plain(info))
         )
 
-    # ------------------------------------------------------------------ free motion
-    groups = _allocate(n_free, {"low_velocity": 8, "plateau": 6, "high_velocity": 16})
-    if n_free >= 16:  # the issue's minimum counts for a full campaign
-        groups["low_velocity"] = max(groups["low_velocity"], 6)
-        groups["high_velocity"] = max(groups["high_velocity"], 10)
-        groups["plateau"] = n_free - groups["low_velocity"] - groups["high_velocity"]
-    free: list[tuple[str, str, np.ndarray, dict]] = []
+    return profiles
 
-    # low velocity: Stribeck window
-    for j in range(groups["low_velocity"]):
+
+def _low_velocity_currents(rng, station: Station, t: np.ndarray, ramp: np.ndarray, n: int, Km: float) -> list[tuple]:
+    """`campaign`'s free-motion `low_velocity` currents (the Stribeck window, see `campaign`), as
+    (kind, regime, current, info)."""
+    free = []
+    for j in range(n):
         kind = ("sine", "square", "multisine")[j % 3]
         direction = 1 if j % 2 == 0 else -1
         reverse = j % 4 == 3
@@ -450,8 +472,13 @@ def campaign(
             info.update(frequency=f, window_centre=centre, window_swing=half)
         free.append(("slow_" + kind, "low_velocity", i, info))
 
-    # plateau: slow squares, viscous range
-    for j in range(groups["plateau"]):
+    return free
+
+
+def _plateau_currents(rng, t: np.ndarray, ramp: np.ndarray, n: int, duration: float, i_coulomb: float) -> list[tuple]:
+    """`campaign`'s free-motion `plateau` currents: slow squares in the viscous range."""
+    free = []
+    for j in range(n):
         periods = 1 if j % 2 == 0 else 2
         f = periods / duration
         level = rng.uniform(1.3, 2.6)
@@ -460,8 +487,15 @@ def campaign(
         i = ramp * level * i_coulomb * shape
         free.append(("square", "plateau", i, {"frequency": f, "amplitude": level * i_coulomb}))
 
-    # high velocity: two-directional
-    kinds = _kinds(groups["high_velocity"], ("sine", "square", "chirp", "multisine"))
+    return free
+
+
+def _high_velocity_currents(rng, t: np.ndarray, ramp: np.ndarray, n: int, duration: float, dt: float, Km: float, J: float,
+                            i_coulomb: float) -> list[tuple]:
+    """`campaign`'s free-motion `high_velocity` currents: two-directional, with rejection-sampled
+    phases (see `campaign`)."""
+    free = []
+    kinds = _kinds(n, ("sine", "square", "chirp", "multisine"))
     vpeaks = _spread(rng, 15.0, 180.0, len(kinds))
     for kind, vpk in zip(kinds, vpeaks):
         for _ in range(200):
@@ -497,12 +531,7 @@ def campaign(
         info.update(amplitude=float(amp), target_peak_velocity=float(vpk))  # pyright: ignore[reportPossiblyUnboundVariable]
         free.append((kind, "high_velocity", ramp * amp * shape, info))  # pyright: ignore[reportPossiblyUnboundVariable]
 
-    order = rng.permutation(len(free))  # interleave the regimes through the session
-    for j, k in enumerate(order):
-        kind, regime, i, info = free[k]
-        profiles.append(CurrentProfile(f"free_{j + 1:02d}_{kind}", "free", i, t, kind.removeprefix("slow_"),
-                                       regime, _plain(info)))  # fmt: skip
-    return profiles
+    return free
 
 
 def _plain(x: Any) -> Any:
