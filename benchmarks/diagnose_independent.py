@@ -152,6 +152,7 @@ def main() -> int:
         exps = [ds.experiments[i] for i in ds.dynamic_indices()]
         t0 = time.perf_counter()
         paper = identify_paper(exps, ds.drive)
+        t_paper = time.perf_counter() - t0
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
                      two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
                      consistency_in=consistency_in,
@@ -163,7 +164,8 @@ def main() -> int:
                "model_form": [m["assumption"] for m in d.model_form], "time_s": round(dt, 1),
                "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
                "bench": {"low_speed": args.low_speed, "noise": args.noise},
-               "consistency_in": consistency_in}
+               "consistency_in": consistency_in,
+               "stages_s": {"paper_identification": round(t_paper, 1), **{k: round(v, 1) for k, v in d.timing.items()}}}
         rows.append(row)
         print(json.dumps(row), flush=True)
     n = len(rows)
