@@ -5,11 +5,12 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
 
 1. Base model: the paper's identification, refined by a few trajectory-error LM steps (at the
    Jacobian tolerance). In the first round, before any effect, the base model's own assumptions
-   (SPEC §4b `model_form`: low-speed friction scales, sensor offsets, sensor lags) are screened by
-   the same held-out rules and every significant one is adopted (`Diagnosis.model_form`); each
-   (experiment, channel) is weighted by its own noise level and, where the current model leaves
-   more, by that misfit (a bench is never exactly the model). The effects are then screened with
-   a fresh Jacobian: once adjustments are adopted, the noise model is re-estimated and base +
+   (SPEC §4b `model_form`: low-speed friction scales, sensor offsets, sensor lags, the current's
+   path between samples) are screened by the same held-out rules and every significant one is
+   adopted (`Diagnosis.model_form`); each (experiment, channel) is weighted by its own noise
+   level and, where the current model leaves more, by that misfit (a bench is never exactly the
+   model). The effects are then screened with a fresh Jacobian: once adjustments are adopted,
+   the noise model is re-estimated and base +
    adjustments are re-fitted from a new Jacobian (`readapt_after_form`, default on since
    2026-11-27): a sensor lag fitted from zero moves the model far from where the first Jacobian
    was taken, and the base model's own correction to it dominated every candidate's fit (a hidden
@@ -177,6 +178,7 @@ def _all_columns(ctx: dict) -> list[_Column]:
         _Column("sensor_offset", "current_offset", None, ctx["current_noise"], 0.0),
         _Column("sensor_bandwidth", "torque_lag", None, ctx["dt"], 0.0),
         _Column("sensor_bandwidth", "velocity_lag", None, ctx["dt"], 0.0),
+        _Column("input_between_samples", "reconstruction", None, 1.0, 0.0),
     ]
     return cols
 

@@ -27,6 +27,7 @@ physics of the drive but of the bench and of the paper model's fixed choices:
 | `low_speed_friction` | friction regularisation scale × $e^{\lambda_s}$ (`friction_scale` = $\lambda_s$) and Stribeck velocity $T_{ss2}$ × $e^{\lambda_v}$ (`stribeck_scale` = $\lambda_v$) |
 | `sensor_offset` | measured torque += `torque_offset` (N·m), measured velocity += `velocity_offset` (rad/s), true current = recorded − `current_offset` (A) |
 | `sensor_bandwidth` | first-order low-pass of the simulated torque and velocity with time constants `torque_lag`, `velocity_lag` (s) |
+| `input_between_samples` | the current between samples: linear + $\lambda$ (Catmull–Rom cubic through the same samples − linear), `reconstruction` = $\lambda$ (-; 0 = straight lines, 1 = the cubic) |
 """
 
 import dataclasses
@@ -57,6 +58,7 @@ MODEL_FORM = {
     "low_speed_friction": ("friction_scale", "stribeck_scale"),
     "sensor_offset": ("torque_offset", "velocity_offset", "current_offset"),
     "sensor_bandwidth": ("torque_lag", "velocity_lag"),
+    "input_between_samples": ("reconstruction",),
 }
 MODEL_FORM_NAMES = tuple(MODEL_FORM)
 #: The scalar fields of every non-periodic term, effects and model_form alike.
@@ -128,6 +130,7 @@ class Effects(eqx.Module):
     current_offset: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     torque_lag: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     velocity_lag: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    reconstruction: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
 
     def __check_init__(self):
         unknown = set(self.active) - set(EFFECT_NAMES) - set(MODEL_FORM)

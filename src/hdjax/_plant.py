@@ -182,6 +182,35 @@ class UniformLinearInput(eqx.Module):
         return (1.0 - w) * self.values[i] + w * self.values[i + 1]
 
 
+class UniformCubicBlendInput(eqx.Module):
+    """SPEC §4b `input_between_samples`: the samples on a uniform grid joined by the straight line
+    plus `reconstruction` (λ, -) times the difference between the Catmull–Rom cubic through the
+    same samples and that line. λ = 0 is `UniformLinearInput`; λ = 1 the cubic (slopes
+    (v[k+1] − v[k−1]) / 2Δt, one-sided at the ends). Every λ passes through the samples, so the
+    record is not altered; only the path between samples is. A current from a fast current loop
+    sampled at a few hundred Hz rounds its edges between samples the way the cubic does (measured on
+    the independent bench, 500 Hz square wave, true parameters: peak edge misfit of the motor
+    velocity 4.6 σ with straight lines, 0.6 σ with the cubic; `benchmarks/RESULTS.md`)."""
+
+    t0: Float[Array, ""]
+    dt: Float[Array, ""]
+    values: Float[Array, " time"]
+    reconstruction: Float[Array, ""]
+
+    def evaluate(self, t):
+        v = self.values
+        s = (t - self.t0) / self.dt
+        n = v.shape[0]
+        i = jnp.clip(jnp.floor(s), 0, n - 2).astype(int)
+        w = s - i.astype(s.dtype)
+        v0, v1 = v[i], v[i + 1]
+        m0 = 0.5 * (v1 - v[jnp.maximum(i - 1, 0)]) * jnp.where(i == 0, 2.0, 1.0)
+        m1 = 0.5 * (v[jnp.minimum(i + 2, n - 1)] - v0) * jnp.where(i + 2 > n - 1, 2.0, 1.0)
+        # cubic Hermite − line: w(w−1)(2w−1)(v0 − v1) + h10 m0 + h11 m1 (per-sample slopes)
+        bend = w * (w - 1.0) * (2.0 * w - 1.0) * (v0 - v1) + w * (w - 1.0) ** 2 * m0 + w * w * (w - 1.0) * m1
+        return (1.0 - w) * v0 + w * v1 + self.reconstruction * bend
+
+
 def _friction(p: Parameters, drive: Drive, wm, theta_m, T, t_session, effects: Effects, smoothing: Smoothing):
     """Eq. 9 with the friction extensions of `effects` (N·m)."""
     viscous, coulomb, stribeck = friction_parts(p, wm, smoothing)
@@ -423,7 +452,10 @@ def _simulate_one(p: Parameters, drive: Drive, exp: Experiment, effects: Effects
     dt = (t_last - exp.time[0]) / jnp.maximum(n_valid - 1, 1).astype(t_last.dtype)
     # recorded current = true current + offset (SPEC §4b `sensor_offset`), removed once per solve
     true_current = exp.current - effects.current_offset if "sensor_offset" in effects.active else exp.current
-    current = UniformLinearInput(exp.time[0], dt, true_current)
+    if "input_between_samples" in effects.active:
+        current = UniformCubicBlendInput(exp.time[0], dt, true_current, jnp.asarray(effects.reconstruction))
+    else:
+        current = UniformLinearInput(exp.time[0], dt, true_current)
     if isinstance(simulator.solver, VelocityImplicit):
         return _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator)
     if simulator.fixed_step is not None:
