@@ -815,11 +815,12 @@ class _FoldFits:
 
 
 def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, modes: np.ndarray, k: int,
-           rule: Significance, *, drift_share: float | None = None) -> dict:
+           rule: Significance, *, drift_share: float | None = None, per_record_rule: bool = True) -> dict:
     """The simulated held-out figures of a candidate with `k` parameters from the whitened held-out
     residuals without and with it, and whether `rule` names it. A drift term (`DRIFT_EFFECTS`)
     passes the effect-size rule also with a `drift_share` ≥ `rule.min_drift_share` (its fit's
-    signs consistent and physical; see `_screen`)."""
+    signs consistent and physical; see `_screen`). `per_record_rule`: no held-out experiment may
+    lose more than `rule.max_record_loss` of its own error (effects; not model_form adjustments)."""
     sse_before, sse_after = _fold_sse(res_before, folds), _fold_sse(res_after, folds)
     e_before = _per_exp(res_before)
     gain = 1.0 - sse_after.sum() / sse_before.sum()
@@ -857,7 +858,10 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     large = ((max(mode_gains.values()) > rule.min_relative_gain
               and (gain_rest is None or gain_rest > rule.min_gain_without_best))
              or rule.drift_is_large(drift_share))
-    significant = bool(np.all(sse_after < sse_before) and large
+    # and no record contradicts it (`MAX_RECORD_LOSS`)
+    worst = int(np.argmin(d / e_before))
+    contradicted = per_record_rule and rule.contradicted(float(-d[worst]), float(-d[worst] / e_before[worst]), k)
+    significant = bool(np.all(sse_after < sse_before) and large and not contradicted
                        and dchi > chance and dchi_rest > chance
                        and min(mode_dchi.values()) > -max(chance, rule.mode_trade * max(mode_dchi.values()))
                        and rule.consistent(improved))
@@ -865,7 +869,8 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
                 delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
                 harm_ratio=harm, per_experiment_gain=(d / e_before).tolist(),
                 mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
-                acting_mode_gain_without_best=gain_rest, significant=significant)
+                acting_mode_gain_without_best=gain_rest, contradicted_by=int(worst) if contradicted else None,
+                significant=significant)
 
 
 #: Effects that change a base parameter from record to record (a drift over the session), with the
@@ -925,7 +930,8 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
             s["between_record_share"] = drift
         if len(raw_after_of) < n_simulated and (predicted[c] > 0.5 * rule.min_relative_gain or rule.drift_is_large(drift)):
             res_after, raw_after_of[c] = loop.simulate_each(steps[c][0])
-            s.update(_judge(res_before, res_after, folds, loop.modes, s["k"], rule, drift_share=drift))
+            s.update(_judge(res_before, res_after, folds, loop.modes, s["k"], rule, drift_share=drift,
+                            per_record_rule=c not in MODEL_FORM))
         else:
             s.update(gain=float(predicted[c]), significant=False)
         scores[c] = s
@@ -936,6 +942,7 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
                + (f", {s['acting_mode']} without its best {s['acting_mode_gain_without_best']:+.3f}"
                   if s["acting_mode_gain_without_best"] is not None else "") + ")" if s["simulated"] else "")
             + (f" (between-record share {drift:.2f})" if drift is not None else "")
+            + (f" contradicted by held-out experiment {s['contradicted_by']}" if s.get("contradicted_by") is not None else "")
             + (" significant" if s["significant"] else ""))
         if s["simulated"]:
             log("    per held-out experiment: " + " ".join(f"{100 * g:+.0f}" for g in s["per_experiment_gain"])

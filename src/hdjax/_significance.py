@@ -8,8 +8,8 @@ effect size (`min_relative_gain` of the pooled held-out RMS) and the share of fo
 improve (`min_improved_fraction` = 0.8: every fold with up to 4 folds, all but one with 5). The
 chance-level terms (Δχ² in sensor-noise units) need a noise model, which friction-only records
 (joint torque minus a rigid-body model, no sensor noise level) do not give; they are not used
-there, nor is the per-mode rule `min_gain_without_best` (friction-only data have one mode, judged
-by its folds).
+there, nor are the per-mode rule `min_gain_without_best` (friction-only data have one mode, judged
+by its folds) and the per-record rule `max_record_loss`.
 
 Both loops are one greedy forward selection (`forward_selection`): each round screens the
 candidates left against the current model, names the significant one that gains most, adds it,
@@ -37,6 +37,18 @@ MODE_TRADE = 0.25
 MIN_GAIN_WITHOUT_BEST = 0.025
 
 
+#: And no record may contradict it: a finding fitted on the other records must not make one held-out
+#: record worse by more than this share of that record's own whitened squared error (and more than
+#: the chance level). A clean independent-bench dataset (LuGre low-speed law, per-record noise, HD1,
+#: 500 Hz, seed 6008) named a false `input_delay` that made its locked square-wave record 69 % worse
+#: (+42 % on the chirp): the paper model is late at the square wave's edges, where the bench's
+#: presliding friction moves first (12.5 σ of torque at true parameters), and any timing term fitted
+#: elsewhere makes that worse. The logged true findings (kinematic error, load-dependent friction,
+#: thermal drift; 2026-11-28) cost one record at most 32 %. Applied to effects, not to the
+#: model_form adjustments: an offset or a lag fitted on the other records may miss one record's own.
+MAX_RECORD_LOSS = 0.5
+
+
 @dataclasses.dataclass(frozen=True)
 class Significance:
     """The rules a candidate's held-out gain must pass to be named.
@@ -51,7 +63,9 @@ class Significance:
     a free value per record of the base parameters it changes would gain held out that the drift
     term gains; `min_gain_without_best` the held-out gain (relative, as `min_relative_gain`) that the
     mode where the candidate acts must still show without its held-out experiment that gains most
-    (`MIN_GAIN_WITHOUT_BEST`); `consistency_in` which mode's held-out experiments must improve in
+    (`MIN_GAIN_WITHOUT_BEST`); `max_record_loss` the largest share of its own whitened squared error
+    that one held-out experiment may lose to a named effect (`MAX_RECORD_LOSS`; None: no limit);
+    `consistency_in` which mode's held-out experiments must improve in
     `min_improved_fraction` of cases: "largest_gain" (the mode where the candidate gains most; the
     default) or "any_acting" (any mode where it gains more than `min_relative_gain`; measured on a
     variant of the bench, not the default: benchmarks/RESULTS.md, twenty-fifth session)."""
@@ -63,6 +77,7 @@ class Significance:
     mode_trade: float = MODE_TRADE
     min_drift_share: float = 0.5
     min_gain_without_best: float = MIN_GAIN_WITHOUT_BEST
+    max_record_loss: float | None = MAX_RECORD_LOSS
     consistency_in: str = "largest_gain"
 
     def __post_init__(self):
@@ -76,6 +91,11 @@ class Significance:
     def consistent(self, improved_fraction: float) -> bool:
         """Enough held-out experiments (or folds) improved: at least `min_improved_fraction`."""
         return improved_fraction >= self.min_improved_fraction
+
+    def contradicted(self, loss: float, loss_fraction: float, k: int) -> bool:
+        """One held-out experiment lost `loss` (Δχ², sensor-noise units), `loss_fraction` of its own
+        squared error, to a candidate with `k` parameters: more than `max_record_loss` and than chance."""
+        return self.max_record_loss is not None and loss_fraction > self.max_record_loss and loss > self.chance(k)
 
     def drift_is_large(self, between_record_share: float | None) -> bool:
         """A drift term's between-record share (None: the candidate is no drift term) is at least
