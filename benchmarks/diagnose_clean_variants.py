@@ -2,10 +2,11 @@
 laid out differently from the 20-dataset benchmark (`diagnose_independent.py`: 8 locked + 8 free
 records of 2.5 s at 1 kHz)?
 
-Six clean datasets from the independent bench (`hdjax.bench.make_dataset`, every deviation on, no
-effect hidden), each changing one thing a user's bench may change: the sampling rate (500 Hz,
+Eight clean datasets from the independent bench (`hdjax.bench.make_dataset`, every deviation on, no
+effect hidden), six of them changing one thing a user's bench may change: the sampling rate (500 Hz,
 2 kHz), the record length (6 + 6 records of 5 s), the mix of tests (12 locked + 4 free), the
-low-speed law (LuGre) and the noise (scaled with each record's range). The seeds (6001–6006) are
+low-speed law (LuGre) and the noise (scaled with each record's range); two change the last two at
+once (at 1 kHz and at 500 Hz). The seeds (6001–6008) are
 used by no test and no other benchmark. Each dataset is diagnosed by the command a user runs,
 `python -m hdjax.diagnose DIR --out DIR/result --quiet`, one after the other. Prints, per
 dataset, the findings (there should be none), the model_form items adopted and the time.
@@ -28,6 +29,9 @@ VARIANTS = {
     "c6004_12l4f": dict(drive="hd1", seed=6004, n_locked=12, n_free=4),
     "c6005_lugre": dict(drive="hd2", seed=6005, low_speed="lugre"),
     "c6006_perrec": dict(drive="hd1", seed=6006, noise="per_record"),
+    # both variant switches at once (twenty-ninth session)
+    "c6007_lugre_perrec": dict(drive="hd2", seed=6007, low_speed="lugre", noise="per_record"),
+    "c6008_lugre_perrec_500hz": dict(drive="hd1", seed=6008, sample_rate=500.0, low_speed="lugre", noise="per_record"),
 }
 
 
