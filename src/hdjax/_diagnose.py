@@ -10,10 +10,9 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    adopted (`Diagnosis.model_form`); each (experiment, channel) is weighted by its own noise
    level and, where the current model leaves more, by that misfit (a bench is never exactly the
    model). The effects are then screened with a fresh Jacobian: once adjustments are adopted,
-   the noise model is re-estimated and base +
-   adjustments are re-fitted from a new Jacobian (`readapt_after_form`, default on since
-   2026-11-27): a sensor lag fitted from zero moves the model far from where the first Jacobian
-   was taken, and the base model's own correction to it dominated every candidate's fit (a hidden
+   the noise model is re-estimated and base + adjustments are re-fitted from a new Jacobian
+   (`readapt_after_form`, default on since 2026-11-27): a sensor lag fitted from zero moves the
+   model far from where the first Jacobian was taken, and the base model's own correction to it dominated every candidate's fit (a hidden
    Dahl hysteresis and a second effect were missed). `readapt_after_form=False` screens the
    effects with round 1's Jacobian and noise model, as before; it is faster (one Jacobian and
    re-fit fewer) and names an input delay that the re-fitted sensor lags otherwise absorb (see
@@ -815,12 +814,11 @@ class _FoldFits:
 
 
 def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, modes: np.ndarray, k: int,
-           rule: Significance, *, drift_share: float | None = None, per_record_rule: bool = True) -> dict:
+           rule: Significance, *, drift_share: float | None = None) -> dict:
     """The simulated held-out figures of a candidate with `k` parameters from the whitened held-out
     residuals without and with it, and whether `rule` names it. A drift term (`DRIFT_EFFECTS`)
     passes the effect-size rule also with a `drift_share` ≥ `rule.min_drift_share` (its fit's
-    signs consistent and physical; see `_screen`). `per_record_rule`: no held-out experiment may
-    lose more than `rule.max_record_loss` of its own error (effects; not model_form adjustments)."""
+    signs consistent and physical; see `_screen`)."""
     sse_before, sse_after = _fold_sse(res_before, folds), _fold_sse(res_after, folds)
     e_before = _per_exp(res_before)
     gain = 1.0 - sse_after.sum() / sse_before.sum()
@@ -859,15 +857,16 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
               and (gain_rest is None or gain_rest > rule.min_gain_without_best))
              or rule.drift_is_large(drift_share))
     # and no record contradicts it (`MAX_RECORD_LOSS`)
-    worst = int(np.argmin(d / e_before))
-    contradicted = per_record_rule and rule.contradicted(float(-d[worst]), float(-d[worst] / e_before[worst]), k)
+    rel = d / e_before
+    worst = int(np.argmin(rel))
+    contradicted = rule.contradicted(float(-d[worst]), float(-rel[worst]), k)
     significant = bool(np.all(sse_after < sse_before) and large and not contradicted
                        and dchi > chance and dchi_rest > chance
                        and min(mode_dchi.values()) > -max(chance, rule.mode_trade * max(mode_dchi.values()))
                        and rule.consistent(improved))
     return dict(simulated=True, gain=float(gain), fold_gains=(1 - sse_after / sse_before).tolist(), delta_chi2=dchi,
                 delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
-                harm_ratio=harm, per_experiment_gain=(d / e_before).tolist(),
+                harm_ratio=harm, per_experiment_gain=rel.tolist(),
                 mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
                 acting_mode_gain_without_best=gain_rest, contradicted_by=int(worst) if contradicted else None,
                 significant=significant)
@@ -930,8 +929,10 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
             s["between_record_share"] = drift
         if len(raw_after_of) < n_simulated and (predicted[c] > 0.5 * rule.min_relative_gain or rule.drift_is_large(drift)):
             res_after, raw_after_of[c] = loop.simulate_each(steps[c][0])
-            s.update(_judge(res_before, res_after, folds, loop.modes, s["k"], rule, drift_share=drift,
-                            per_record_rule=c not in MODEL_FORM))
+            # a model_form adjustment (an offset, a lag) fitted on the other records may miss one
+            # record's own: the per-record rule (`MAX_RECORD_LOSS`) judges effects only
+            rule_c = dataclasses.replace(rule, max_record_loss=None) if c in MODEL_FORM else rule
+            s.update(_judge(res_before, res_after, folds, loop.modes, s["k"], rule_c, drift_share=drift))
         else:
             s.update(gain=float(predicted[c]), significant=False)
         scores[c] = s

@@ -164,6 +164,14 @@ def initial_state(p: Parameters, drive: Drive, exp: Experiment, simulator: Simul
     return (torsion0, wm0, th_o0, wo0), th_m0
 
 
+def _sample_interval(t, t0, dt, n: int):
+    """Index i of the sample interval [t_i, t_i+1] holding `t` on the uniform grid t0 + k·dt of `n`
+    samples (clipped to the first and last interval), and the fraction w ∈ [0, 1] of it."""
+    s = (t - t0) / dt
+    i = jnp.clip(jnp.floor(s), 0, n - 2).astype(int)
+    return i, s - i.astype(s.dtype)
+
+
 class UniformLinearInput(eqx.Module):
     """Piecewise-linear interpolation of samples on a uniform grid, O(1) per evaluation.
 
@@ -175,10 +183,7 @@ class UniformLinearInput(eqx.Module):
     values: Float[Array, " time"]
 
     def evaluate(self, t):
-        s = (t - self.t0) / self.dt
-        n = self.values.shape[0]
-        i = jnp.clip(jnp.floor(s), 0, n - 2).astype(int)
-        w = s - i.astype(s.dtype)
+        i, w = _sample_interval(t, self.t0, self.dt, self.values.shape[0])
         return (1.0 - w) * self.values[i] + w * self.values[i + 1]
 
 
@@ -199,14 +204,14 @@ class UniformCubicBlendInput(eqx.Module):
 
     def evaluate(self, t):
         v = self.values
-        s = (t - self.t0) / self.dt
         n = v.shape[0]
-        i = jnp.clip(jnp.floor(s), 0, n - 2).astype(int)
-        w = s - i.astype(s.dtype)
+        i, w = _sample_interval(t, self.t0, self.dt, n)
         v0, v1 = v[i], v[i + 1]
-        m0 = 0.5 * (v1 - v[jnp.maximum(i - 1, 0)]) * jnp.where(i == 0, 2.0, 1.0)
-        m1 = 0.5 * (v[jnp.minimum(i + 2, n - 1)] - v0) * jnp.where(i + 2 > n - 1, 2.0, 1.0)
-        # cubic Hermite − line: w(w−1)(2w−1)(v0 − v1) + h10 m0 + h11 m1 (per-sample slopes)
+        # per-sample slopes: the difference over the samples on either side (one-sided at the ends)
+        lo, hi = jnp.maximum(i - 1, 0), jnp.minimum(i + 2, n - 1)
+        m0 = (v1 - v[lo]) / (i + 1 - lo).astype(v.dtype)
+        m1 = (v[hi] - v0) / (hi - i).astype(v.dtype)
+        # cubic Hermite − line: w(w−1)(2w−1)(v0 − v1) + h10 m0 + h11 m1
         bend = w * (w - 1.0) * (2.0 * w - 1.0) * (v0 - v1) + w * (w - 1.0) ** 2 * m0 + w * w * (w - 1.0) * m1
         return (1.0 - w) * v0 + w * v1 + self.reconstruction * bend
 
