@@ -54,9 +54,11 @@ def test_a_broken_fit_json_names_the_file_the_field_and_the_fix(tmp_path, break_
 
 def test_effects_round_trip_through_the_extended_model(tmp_path):
     eff = (Effects().with_periodic("kinematic_error", 2, 1.5e-4, 0.3).with_periodic("kinematic_error", 3, 4e-5, -1.0)
-           .with_values("thermal_drift", beta=0.4, tau=450.0))
+           .with_values("thermal_drift", beta=0.4, tau=450.0).with_values("presliding_friction", presliding=0.6,
+                                                                           presliding_scale=-0.5))
     d = effects_to_dict(eff)
-    assert set(d) == {"kinematic_error", "thermal_drift"} and d["thermal_drift"]["tau"] == 450.0
+    assert set(d) == {"kinematic_error", "thermal_drift", "presliding_friction"} and d["thermal_drift"]["tau"] == 450.0
+    assert d["presliding_friction"] == {"presliding": 0.6, "presliding_scale": -0.5}
     p, _ = hd2()
     path = tmp_path / "extended_model.json"
     path.write_text(json.dumps({"parameters": p.to_dict(), "effects": d}))
@@ -64,6 +66,7 @@ def test_effects_round_trip_through_the_extended_model(tmp_path):
     assert p2.to_dict() == p.to_dict() and eff2.active == eff.active
     d2 = effects_to_dict(eff2)  # through sin/cos coefficients: equal to round-off
     assert d2["thermal_drift"] == d["thermal_drift"] and d2["kinematic_error"]["orders"] == d["kinematic_error"]["orders"]
+    assert d2["presliding_friction"] == d["presliding_friction"]
     for key in ("amplitudes", "phases"):
         np.testing.assert_allclose(d2["kinematic_error"][key], d["kinematic_error"][key], rtol=1e-12, atol=1e-15)
     with pytest.raises(ValueError, match="unknown effect 'backlash'"):

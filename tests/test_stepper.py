@@ -105,3 +105,13 @@ def test_every_root_converges_with_the_diagnosis_terms_switched_on():
             tr = _sim(p, drive, exp, 4, effects=hdjax.Effects(active=frozenset([name]), sigma=2e-5))
             assert bool(tr.success), (mode, amp, name)
             assert np.all(np.isfinite(np.asarray(tr.torque))), (mode, amp, name)
+
+
+def test_presliding_friction_is_refused_by_the_stepper():
+    """The stepper's exact sticking is the δ → 0 limit of `presliding_friction`'s Dahl state, which it
+    does not carry: asked for it, `simulate` says so and names the solvers that do."""
+    p, drive = hd2()
+    exp = sine_experiment("constrained", duration=0.05)
+    eff = hdjax.Effects().with_values("presliding_friction", presliding=0.5)
+    with pytest.raises(ValueError, match="presliding_friction.*Rodas3"):
+        hdjax.simulate(p, drive, exp, effects=eff, simulator=hdjax.Simulator(solver=hdjax.VelocityImplicit()))

@@ -240,14 +240,17 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
     y0 = (zero, zero, zero, zero)
     if "rate_independent_hysteresis" in effects.active:
         y0 = y0 + (zero,)
+    if "presliding_friction" in effects.active:  # the Dahl friction state, relaxed at rest
+        y0 = y0 + (zero,)
     geometry = (zero, zero, zero)
     solver = Rodas3()
     term = dfx.ODETerm(_vector_field)
     # eq. 9 with a fitted low-speed law (SPEC §4b), as in `simulate`; a recorded-current offset does
     # not apply here: the law commands the true current
     p_dyn, smoothing_dyn = _low_speed_friction(p, effects, smoothing)
-    # absolute error scales of the state (torsion worth 1 N·m, 1 rad/s, 1 mrad, 10 mrad/s, Dahl z)
-    scales = (1.0 / p.K1, 1.0, 1e-3, 1e-2, 1e-2)[: len(y0)]
+    # absolute error scales of the state (torsion worth 1 N·m, 1 rad/s, 1 mrad, 10 mrad/s, Dahl z,
+    # presliding s)
+    scales = (1.0 / p.K1, 1.0, 1e-3, 1e-2, 1e-2, 1e-2)[: len(y0)]
 
     def step(carry, inputs):
         y, law_state, i_prev = carry

@@ -17,7 +17,8 @@ from ._plant import Simulator
 from ._progress import task
 
 DEFAULTS = {
-    "candidates": list(EFFECT_NAMES),  # SPEC §4 effects screened, one finding per round
+    # SPEC §4 effects screened, one finding per round (presliding friction is not: `_check_names`)
+    "candidates": [n for n in EFFECT_NAMES if n != "presliding_friction"],
     "model_form": list(MODEL_FORM_NAMES),  # SPEC §4b base-model assumptions screened first
     "base_steps": 5,  # LM steps refining the base model
     "max_findings": 3,

@@ -28,8 +28,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._effects import Effects, dahl_rate, stiffness_torque, thermal_factor
+from ._effects import Effects, dahl_rate, presliding_rate, stiffness_torque, thermal_factor
 from ._experiment import Experiment
+from ._friction import STATE_SCALE
 from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_parts
 from ._sharding import (
     experiment_batching,
@@ -39,7 +40,7 @@ from ._sharding import (
     map_experiments,
     shard_experiments,
 )
-from ._smooth import smooth_sign, smooth_signed_power
+from ._smooth import smooth_sign, smooth_signed_power, smooth_step
 from ._solver import Rodas3, Ros34PW2
 from ._stepper import VelocityImplicit, implicit_trajectory
 
@@ -216,9 +217,30 @@ class UniformCubicBlendInput(eqx.Module):
         return (1.0 - w) * v0 + w * v1 + self.reconstruction * bend
 
 
-def _friction(p: Parameters, drive: Drive, wm, theta_m, T, t_session, effects: Effects, smoothing: Smoothing):
-    """Eq. 9 with the friction extensions of `effects` (N·m)."""
-    viscous, coulomb, stribeck = friction_parts(p, wm, smoothing)
+def _presliding_index(effects: Effects) -> int | None:
+    """Index of `presliding_friction`'s Dahl friction state in the plant state (after the Dahl
+    hysteresis state where that is on), or None."""
+    if "presliding_friction" not in effects.active:
+        return None
+    return 5 if "rate_independent_hysteresis" in effects.active else 4
+
+
+def _friction_direction(wm, y, effects: Effects, smoothing: Smoothing):
+    """(sign, step) that the Coulomb and Stribeck terms of eq. 9 switch on: the smoothed sign(ω)
+    and u(ω), blended with `presliding_friction`'s state s (fraction `presliding`; its
+    step u(s) at `STATE_SCALE`, as in the friction-only fits); None without that item."""
+    k = _presliding_index(effects)
+    if k is None:
+        return None
+    w = effects.presliding
+    sg, up = smooth_sign(wm, smoothing.velocity_scale), smooth_step(wm, smoothing.velocity_scale)
+    return (1.0 - w) * sg + w * y[k], (1.0 - w) * up + w * smooth_step(y[k], STATE_SCALE)
+
+
+def _friction(p: Parameters, drive: Drive, wm, theta_m, T, t_session, effects: Effects, smoothing: Smoothing,
+              direction=None):
+    """Eq. 9 with the friction extensions of `effects` (N·m); `direction` as in `friction_basis`."""
+    viscous, coulomb, stribeck = friction_parts(p, wm, smoothing, direction=direction)
     if "thermal_drift" in effects.active:
         viscous = viscous * thermal_factor(effects.beta, effects.tau, t_session)
     if "position_dependent_friction" in effects.active:
@@ -273,31 +295,35 @@ def _first_order_lag(x: Float[Array, " time"], tau, dt) -> Float[Array, " time"]
 
 def _vector_field(t, y, args, *, stiff_only: bool = False):
     """The plant's ODE: state (torsion, wave-generator velocity, output angle, output velocity[,
-    Dahl state]). `stiff_only`: only the terms of `plant_stiff_part` (no current, cogging or
+    Dahl hysteresis state][, presliding friction state]). `stiff_only`: only the terms of `plant_stiff_part` (no current, cogging or
     friction factors; the linear kinematic rows zero)."""
     p, drive, current, free, start_time, geometry, effects, smoothing = args
     q, wm, th_o, wo = y[:4]
     th_m, torsion, rate, T = _outputs(p, drive, y, geometry, effects, smoothing)
+    direction = _friction_direction(wm, y, effects, smoothing)
     if stiff_only:
         drive_torque = jnp.zeros_like(wm)
-        Tf = sum(friction_parts(p, wm, smoothing))
+        Tf = sum(friction_parts(p, wm, smoothing, direction=direction))
     else:
         i = current.evaluate(t - effects.delay) if "input_delay" in effects.active else current.evaluate(t)
         drive_torque = drive.torque_constant * i + effects.periodic("cogging", th_m)
-        Tf = _friction(p, drive, wm, th_m, T, start_time + t, effects, smoothing)
+        Tf = _friction(p, drive, wm, th_m, T, start_time + t, effects, smoothing, direction)
     dwm = (drive_torque - T / drive.gear_ratio - Tf) / p.Jeff
     dwo = free * T / drive.load_inertia
     zero = jnp.zeros_like(wm)
     dy = (zero, dwm, zero, dwo) if stiff_only else (wm / drive.gear_ratio - wo, dwm, wo, dwo)
     if "rate_independent_hysteresis" in effects.active:
         dy = dy + (dahl_rate(y[4], rate, effects, smoothing.torsion_rate_scale),)
+    k = _presliding_index(effects)
+    if k is not None:
+        dy = dy + (presliding_rate(y[k], wm, effects, smoothing.velocity_scale),)
     return dy
 
 
 def plant_stiff_part(t, y, args):
     """The part of `_vector_field` whose Jacobian changes fast or with the parameters: the transmitted
     torque (spring, power-law damping near zero torsion rate, Dahl term) and eq. 9 near zero
-    speed (its smoothed sign and step), with the Dahl state; the current, cogging, the smooth
+    speed (its smoothed sign and step, or the presliding state), with the Dahl and presliding states; the current, cogging, the smooth
     friction factors (thermal, position- and load-dependent) and the linear kinematic rows left out.
     For `Ros34PW2(stiff_part=plant_stiff_part)`: its frozen-J tangents keep the second derivatives
     of these terms only."""
@@ -401,7 +427,27 @@ def _initial_state_with_effects(p, drive, exp, effects, simulator):
         y0 = (q0,) + tuple(y0[1:])
     if "rate_independent_hysteresis" in effects.active:
         y0 = y0 + (jnp.zeros_like(y0[0]),)
+    if _presliding_index(effects) is not None:
+        y0 = y0 + (_presliding_start(p, drive, init_exp, y0[1], effects, simulator),)
     return y0, th_m0
+
+
+def _presliding_start(p: Parameters, drive: Drive, exp: Experiment, wm0, effects: Effects, simulator: Simulator):
+    """`presliding_friction`'s state at the first sample: its steady state sign(ω0) when moving;
+    when `initial_state` put the motor at rest, the state whose share w·s of the breakaway torque
+    carries the net drive torque at the start (clipped to ±1; exact for Tsp = Tsn), so that a stuck
+    motor stays stuck as it does in the data."""
+    n = min(simulator.initial_window, exp.time.shape[0])
+    i0, _ = _line_at_start(exp.time, exp.current, exp.mask, n)
+    T0, _ = _line_at_start(exp.time, exp.torque, exp.mask, n)
+    p_dyn, smoothing = _low_speed_friction(p, effects, simulator.smoothing)
+    net = drive.torque_constant * i0 - T0 / drive.gear_ratio
+    breakaway = jnp.where(net >= 0, p_dyn.Tsp + p_dyn.Tssp1, p_dyn.Tsn + p_dyn.Tssn1)
+    w = effects.presliding
+    # (1 − w)·sign(0) + w·s = s·w must carry net/breakaway at rest
+    held = jnp.clip(net / jnp.where(jnp.abs(breakaway) > 0, breakaway, 1.0) / jnp.where(jnp.abs(w) > 1e-12, w, 1.0), -1.0, 1.0)
+    moving = smooth_sign(wm0, smoothing.velocity_scale)
+    return jnp.where(wm0 == 0.0, held, moving)
 
 
 def simulate(
@@ -427,6 +473,9 @@ def simulate(
     fits and diagnoses are unchanged to the bit (a nested `jit` there moved their figures by
     round-off).
     """
+    if isinstance(simulator.solver, VelocityImplicit) and "presliding_friction" in effects.active:
+        raise ValueError("`simulate`: `VelocityImplicit` does not model `presliding_friction` (its exact sticking is "
+                         "that law's δ → 0 limit); use the default solver (`Rodas3`) or `PLANT_W_METHOD` for it.")
     return _simulate_one(p, drive, exp, effects, simulator)
 
 

@@ -721,6 +721,7 @@ EFFECT_UNITS: dict[str, str] = {
     "thermal_drift": "- (beta: viscous × (1 + beta·exp(−t/tau)))",
     "input_delay": "s (current-loop delay)",
     "rate_independent_hysteresis": "N·m (Dahl hysteresis torque Th)",
+    "presliding_friction": "- (fraction of Coulomb and Stribeck friction on a Dahl state, δ = 2e-4 rad)",
 }
 
 
@@ -755,6 +756,7 @@ def reference_magnitude(name: str, station: Station) -> float:
         "thermal_drift": 0.5,
         "input_delay": 2e-3,
         "rate_independent_hysteresis": 0.03 * station.rated_torque,
+        "presliding_friction": 1.0,
     }
     if name not in table:
         raise ValueError(
@@ -783,7 +785,8 @@ def hide_effect(
     - `magnitude`: in the effect's own unit (`EFFECT_UNITS[name]`): periodic effects take the
       amplitude of `a·sin(k·θm + φ)` (θm the wave-generator angle); `nonlinear_stiffness` K3
       (N·m/rad³), `lost_motion` the dead-band half-width (rad), `load_dependent_friction` mu,
-      `thermal_drift` beta, `input_delay` the delay (s), `rate_independent_hysteresis` Th (N·m).
+      `thermal_drift` beta, `input_delay` the delay (s), `rate_independent_hysteresis` Th (N·m),
+      `presliding_friction` the fraction of Coulomb and Stribeck friction on its Dahl state (-).
       `None` takes `reference_magnitude(name, station)`, scaled to the station.
     - `order`, `phase`: order k (cycles per wave-generator turn) and phase φ (rad) of a periodic
       effect.
@@ -810,6 +813,8 @@ def hide_effect(
         return _with_values(base, name, beta=a, tau=THERMAL_TAU if tau is None else float(tau))
     if name == "input_delay":
         return _with_values(base, name, delay=a)
+    if name == "presliding_friction":
+        return _with_values(base, name, presliding=a)
     if name == "rate_independent_hysteresis":
         s = 0.02 * station.rated_torque / float(station.truth.K1) if sigma is None else float(sigma)
         return _with_values(base, name, Th=a, sigma=s)

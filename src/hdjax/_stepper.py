@@ -47,6 +47,9 @@ so they are finite everywhere, at zero velocity and while stuck included.
 active the Coulomb and Stribeck terms ramp linearly over $|\omega_m| < v_c$ with
 $v_c$ = `Smoothing.velocity_scale`·e^`friction_scale` (a creep / presliding width the fit can
 adapt), and $T_{ss2}$ is multiplied by e^`stribeck_scale`.
+
+**`presliding_friction`** (a Dahl friction state) is not modelled here: the stepper's exact
+set-valued sticking is that law's rigid limit (δ → 0); `simulate` refuses the combination.
 """
 
 import functools
