@@ -55,7 +55,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from ._effects import Effects
 from ._model import Drive, Parameters, Smoothing, _as_float, friction_torque
 from ._parameterisation import Entry, Parameterisation, parameterisation
-from ._plant import _low_speed_friction, _outputs, _vector_field
+from ._plant import _low_speed_friction, _outputs, _vector_field, state_size
 from ._solver import Rodas3
 
 _REFINE_RTOL = 0.1  # relative part of the gross step-failure check (see the module doc)
@@ -237,11 +237,7 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
     else:
         nT, nw = (jnp.broadcast_to(jnp.asarray(x, dtype=float), (n,)) for x in noise)
     zero = jnp.zeros(())
-    y0 = (zero, zero, zero, zero)
-    if "rate_independent_hysteresis" in effects.active:
-        y0 = y0 + (zero,)
-    if "presliding_friction" in effects.active:  # the Dahl friction state, relaxed at rest
-        y0 = y0 + (zero,)
+    y0 = (zero,) * state_size(effects)  # at rest; the Dahl and presliding states relaxed
     geometry = (zero, zero, zero)
     solver = Rodas3()
     term = dfx.ODETerm(_vector_field)

@@ -8,8 +8,8 @@ import time
 from ._artifacts import effects_to_dict
 from ._config import section_options
 from ._data import Dataset
-from ._diagnose import diagnose
-from ._effects import EFFECT_NAMES, MODEL_FORM_NAMES
+from ._diagnose import NOT_SCREENED, SCREENED_EFFECTS, diagnose
+from ._effects import MODEL_FORM_NAMES
 from ._evidence import covariate_drifts
 from ._io import atomic_write_json, atomic_write_text
 from ._paper_id import identify_paper
@@ -17,8 +17,7 @@ from ._plant import Simulator
 from ._progress import task
 
 DEFAULTS = {
-    # SPEC §4 effects screened, one finding per round (presliding friction is not: `_check_names`)
-    "candidates": [n for n in EFFECT_NAMES if n != "presliding_friction"],
+    "candidates": list(SCREENED_EFFECTS),  # SPEC §4 effects screened, one finding per round
     "model_form": list(MODEL_FORM_NAMES),  # SPEC §4b base-model assumptions screened first
     "base_steps": 5,  # LM steps refining the base model
     "max_findings": 3,
@@ -60,7 +59,7 @@ class DiagnosisProgress:
     def __init__(self, log, opts: dict):
         self.log = log
         self.model_form = list(opts["model_form"])
-        self.effects = [c for c in opts["candidates"] if c != "presliding_friction"]
+        self.effects = [c for c in opts["candidates"] if c not in NOT_SCREENED]
         self.found = 0
         self.form_round = False
         self._task = None

@@ -217,12 +217,15 @@ class UniformCubicBlendInput(eqx.Module):
         return (1.0 - w) * v0 + w * v1 + self.reconstruction * bend
 
 
+def state_size(effects: Effects) -> int:
+    """Length of the plant state with `effects`: torsion, wave-generator velocity, output angle and
+    velocity, then the Dahl hysteresis state and the presliding friction state where those are on."""
+    return 4 + ("rate_independent_hysteresis" in effects.active) + ("presliding_friction" in effects.active)
+
+
 def _presliding_index(effects: Effects) -> int | None:
-    """Index of `presliding_friction`'s Dahl friction state in the plant state (after the Dahl
-    hysteresis state where that is on), or None."""
-    if "presliding_friction" not in effects.active:
-        return None
-    return 5 if "rate_independent_hysteresis" in effects.active else 4
+    """Index of `presliding_friction`'s Dahl friction state in the plant state (the last one), or None."""
+    return state_size(effects) - 1 if "presliding_friction" in effects.active else None
 
 
 def _friction_direction(wm, y, effects: Effects, smoothing: Smoothing):

@@ -40,7 +40,7 @@ import equinox as eqx
 import numpy as np
 
 from ._dataset_write import write_dataset
-from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, SCALAR, THERMAL_TAU, Effects
+from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, PRESLIDING_DISTANCE, SCALAR, THERMAL_TAU, Effects
 from ._experiment import Experiment, make_experiment, stack_experiments
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
 from ._plant import Simulator, simulate_batch
@@ -721,7 +721,7 @@ EFFECT_UNITS: dict[str, str] = {
     "thermal_drift": "- (beta: viscous × (1 + beta·exp(−t/tau)))",
     "input_delay": "s (current-loop delay)",
     "rate_independent_hysteresis": "N·m (Dahl hysteresis torque Th)",
-    "presliding_friction": "- (fraction of Coulomb and Stribeck friction on a Dahl state, δ = 2e-4 rad)",
+    "presliding_friction": f"- (fraction of Coulomb and Stribeck friction on a Dahl state, δ = {PRESLIDING_DISTANCE:g} rad)",
 }
 
 
