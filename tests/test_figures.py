@@ -52,9 +52,14 @@ def test_diagnosis_figures_draw_spectra_residuals_and_the_loop(tmp_path):
     n = m.shape[1]
     t = np.arange(n) * 1e-3
     base, ext = np.stack([np.sin(7 * t)] * 2), np.stack([1.1 * np.sin(7 * t)] * 2)
+    resolved = [True] * MAX_ORDER
     d = SimpleNamespace(
-        evidence={"order_spectra": {"constrained/torque": np.linspace(1.0, 0.1, MAX_ORDER)}},
-        findings=[{"effect": "cogging"}],
+        evidence={"order_spectra": {"constrained/torque (per-record normalised)": np.full(MAX_ORDER, 1e8),
+                                    "free/torque (per-record normalised)": np.linspace(1.0, 0.1, MAX_ORDER)},
+                  "order_spectra_detection": {"constrained/torque (per-record normalised)": {"threshold": 1e9, "resolved": [False] * MAX_ORDER},
+                                              "free/torque (per-record normalised)": {"threshold": 0.5, "resolved": resolved}},
+                  "torque_balance_spectra": {"e": {"over_median": [1.0] * MAX_ORDER, "over_max": [0.5] * MAX_ORDER}}},
+        findings=[{"effect": "cogging", "orders": [1]}],
         traces={"torque_base": base, "torque_extended": ext, "torsion_extended": 1e-4 * np.stack([np.cos(7 * t)] * 2)})
     names = diagnosis_figures(tmp_path, None, exps, ["locked_01.csv", "free_01.csv"], d)
     assert names == ["residual_spectra.png", "residual_before_after.png", "hysteresis_before_after.png"]
@@ -62,3 +67,32 @@ def test_diagnosis_figures_draw_spectra_residuals_and_the_loop(tmp_path):
         img = plt.imread(tmp_path / name)
         assert img.ndim == 3 and min(img.shape[:2]) > 200 and float(img[..., :3].std()) > 0.01  # drawn, not blank
     assert not list(tmp_path.glob(".*"))  # written atomically: no temporary file left behind
+
+
+def test_spectra_figure_shows_each_spectrum_in_units_of_its_detection_threshold():
+    """The spectra panel of `hdjax diagnose` (`_spectrum_panels`): output-error spectra divided by the
+    loop's own threshold, unresolved orders flagged (a locked test's fit over a fraction of a turn is
+    ill-conditioned, its amplitudes meaningless), torque-balance spectra as the smaller of their two
+    threshold ratios, so a bar above 1 is exactly an order the loop screens."""
+    from hdjax import MAX_ORDER
+    from hdjax._evidence import TB_MAX_RATIO, TB_MEDIAN_RATIO
+    from hdjax._plots import _spectrum_panels
+
+    amp = np.linspace(0.1, 0.8, MAX_ORDER)
+    over_median = np.linspace(1.0, 9.0, MAX_ORDER)
+    over_max = np.full(MAX_ORDER, 2.0)
+    evidence = {"order_spectra": {"free/torque (per-record normalised)": amp.tolist(), "free/torque": (10 * amp).tolist(),
+                                  "constrained/torque (per-record normalised)": [1e8] * MAX_ORDER},
+                "order_spectra_detection": {"free/torque (per-record normalised)": {"threshold": 0.4, "resolved": [True] * MAX_ORDER},
+                                            "constrained/torque (per-record normalised)": {"threshold": 5e8, "resolved": [False] * MAX_ORDER}},
+                "torque_balance_spectra": {"e": {"over_median": over_median.tolist(), "over_max": over_max.tolist()}}}
+    panels = dict(_spectrum_panels(evidence))
+    locked = next(v for t, v in panels.items() if t.startswith("locked"))
+    assert not locked["torque T"][1].any()
+    ratio, resolved = next(v for t, v in panels.items() if t.startswith("free-motion tests: simulated"))["torque T"]
+    np.testing.assert_allclose(ratio, amp / 0.4)
+    assert resolved.all()
+    tb, _ = next(v for t, v in panels.items() if "torque balance" in t)["e (cogging, torque-sensor ripple)"]
+    np.testing.assert_allclose(tb, np.minimum(over_median / TB_MEDIAN_RATIO, over_max / TB_MAX_RATIO))
+    # above 1 exactly where the loop's torque-balance rule finds a peak
+    assert np.array_equal(tb > 1.0, (over_median > TB_MEDIAN_RATIO) & (over_max > TB_MAX_RATIO))

@@ -41,13 +41,15 @@ def spectral_peaks(batch, traj, m, modes, sigma):
     """Order spectra of the residuals (simulated − measured) against the simulated wave-generator
     angle, per mode and channel, and the orders whose amplitude stands out: above 6× the standard
     deviation of a fitted sine amplitude under white noise of the channel's level, and above 3× the
-    spectrum's median, at orders the experiments cover by at least one cycle. Returns (spectra, [(mode/channel, order, amplitude, threshold)])."""
+    spectrum's median, at orders the experiments cover by at least one cycle. Returns (spectra,
+    [(mode/channel, order, amplitude, threshold, amplitude in SI units)], detection): `detection`
+    gives, per normalised spectrum, its threshold and which orders the experiments resolve."""
     res = {"torque": np.asarray(traj.torque) - np.asarray(batch.torque),
            "motor_velocity": np.asarray(traj.motor_velocity) - np.asarray(batch.motor_velocity),
            "output_position": np.asarray(traj.output_position) - np.asarray(batch.output_position)}
     th = np.asarray(traj.motor_position)
     span = np.array([np.ptp(th[i][m[i]]) if m[i].any() else 0.0 for i in range(th.shape[0])])
-    spectra, peaks = {}, []
+    spectra, peaks, detection = {}, [], {}
     for md in ("constrained", "free"):
         sel = np.where(modes == md)[0]
         if not len(sel):
@@ -71,9 +73,10 @@ def spectral_peaks(batch, traj, m, modes, sigma):
             # one of its cycles (median over experiments): over a fraction of a cycle a smooth
             # residual projects onto any low order (locked tests turn it by well under a turn)
             cycles = np.arange(1, MAX_ORDER + 1) * float(np.median(span[sel])) / (2.0 * math.pi)
+            detection[f"{md}/{ch} (per-record normalised)"] = {"threshold": thr, "resolved": (cycles >= 1.0).tolist()}
             for k in np.where((amp > thr) & (cycles >= 1.0))[0]:
                 peaks.append((f"{md}/{ch}", int(k) + 1, float(amp[k]), thr, float(amp_si[k])))
-    return spectra, peaks
+    return spectra, peaks, detection
 
 
 #: Torque-balance spectrum (free-motion tests that turn the wave generator through ≥ 2 turns, samples
@@ -224,7 +227,7 @@ def orders_per_candidate(orders, evidence) -> dict:
 
 
 def residual_evidence(batch, traj, m, modes, sigma, p: Parameters, drive: Drive):
-    spectra, peak_list = spectral_peaks(batch, traj, m, modes, sigma)
+    spectra, peak_list, detection = spectral_peaks(batch, traj, m, modes, sigma)
     res_T = (np.asarray(traj.torque) - np.asarray(batch.torque))
     res_w = (np.asarray(traj.motor_velocity) - np.asarray(batch.motor_velocity))
     # the strongest peaks first (amplitude over threshold), at most three orders
@@ -251,7 +254,7 @@ def residual_evidence(batch, traj, m, modes, sigma, p: Parameters, drive: Drive)
             cov[md][name] = {ch: (float(np.corrcoef(x, r)[0, 1]) if np.std(x) > 0 and np.std(r) > 0 else 0.0)
                              for ch, r in (("torque", rT), ("motor_velocity", rw))}
     tb_spectra, tb_peaks = torque_balance_spectrum(batch, traj, m, modes, p, drive)
-    return {"order_spectra": spectra, "candidate_orders": orders, "correlations": cov,
+    return {"order_spectra": spectra, "order_spectra_detection": detection, "candidate_orders": orders, "correlations": cov,
             "torque_balance_spectra": tb_spectra,
             "torque_balance_peaks": [{"where": w, "order": k, "over_median": a, "over_max": b} for w, k, a, b in tb_peaks],
             "spectral_peaks": [{"where": w, "order": k, "amplitude": a_si, "normalised_amplitude": a, "threshold": t}
@@ -266,7 +269,7 @@ def unexplained(batch, traj, m, modes, sigma, r_meas, r_white, named_at: dict[in
     does not remove, not an effect that no candidate explained)."""
     out = []
     named_at = named_at or {}
-    _, left = spectral_peaks(batch, traj, m, modes, sigma)
+    _, left, _ = spectral_peaks(batch, traj, m, modes, sigma)
     for where, k, a, thr, a_si in sorted(left, key=lambda x: -x[2] / x[3])[:5]:
         if named_at.get(k):
             why = (f"left after the finding(s) {', '.join(named_at[k])} at this order: their fitted term does not "

@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
 from ._effects import MAX_ORDER
+from ._evidence import TB_MAX_RATIO, TB_MEDIAN_RATIO
 from ._experiment import stack_experiments
 from ._fit import CHANNELS
 from ._identify import hysteresis_curves
@@ -284,20 +285,9 @@ def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
     where effects were found, the torque residual before/after the extension and a locked test's
     hysteresis loop under both models. Returns the file names written."""
     names = []
-    spectra = d.evidence["order_spectra"]
-    if spectra:
-        fig, ax = plt.subplots(figsize=(7, 4))
-        k = np.arange(1, MAX_ORDER + 1)
-        w = 0.8 / len(spectra)
-        for j, (key, amp) in enumerate(spectra.items()):
-            amp = np.asarray(amp)
-            ax.bar(k + (j - len(spectra) / 2) * w, amp / max(amp.max(), 1e-300), width=w, label=key)
-        ax.set_xlabel("order (cycles per wave-generator turn)")
-        ax.set_ylabel("residual amplitude (normalised per channel)")
-        ax.set_title("Residual order spectra of the fitted paper model")
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
-        _save(fig, out, "residual_spectra.png", names, dpi=110, bbox_inches="tight")
+    panels = _spectrum_panels(d.evidence)
+    if panels:
+        _spectra_figure(out, panels, d.findings, names)
     if d.findings and d.traces:
         batch = stack_experiments(exps)
         m = np.asarray(batch.mask)
@@ -401,3 +391,86 @@ def friction_cv_figure(problem, d, path, max_panels: int = 4):
     atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
     return pathlib.Path(path)
+
+
+_SPECTRUM_CHANNELS = {"torque": "torque T", "motor_velocity": "motor velocity ωm", "output_position": "output position θo"}
+_BALANCE_LABELS = {"e": "e (cogging, torque-sensor ripple)", "e*sign(w)": "e·sign(ω) (position-dependent friction)"}
+
+
+def _spectrum_panels(evidence: dict) -> list[tuple[str, dict]]:
+    """The order spectra of a diagnosis's evidence in units of their detection thresholds, one panel
+    per kind of test: [(title, {series label: (amplitude / threshold per order, resolved per order)})].
+    Output-error spectra use the per-record normalised amplitudes and the thresholds the loop used
+    (`order_spectra_detection`); the torque-balance spectra the smaller of (amplitude / median) /
+    `TB_MEDIAN_RATIO` and (amplitude / largest non-integer neighbour) / `TB_MAX_RATIO`, so that a bar
+    above 1 is an order the loop screens in both."""
+    spectra, detection = evidence.get("order_spectra", {}), evidence.get("order_spectra_detection", {})
+    panels = []
+    for mode, title in (("constrained", "locked tests: simulated − measured"), ("free", "free-motion tests: simulated − measured")):
+        series = {}
+        for channel, label in _SPECTRUM_CHANNELS.items():
+            key = f"{mode}/{channel} (per-record normalised)"
+            if key in spectra and key in detection:
+                info = detection[key]
+                series[label] = (np.asarray(spectra[key], dtype=float) / info["threshold"], np.asarray(info["resolved"], dtype=bool))
+        if series:
+            panels.append((title, series))
+    balance = evidence.get("torque_balance_spectra", {})
+    series = {}
+    for where, label in _BALANCE_LABELS.items():
+        if where in balance:
+            b = balance[where]
+            ratio = np.minimum(np.asarray(b["over_median"]) / TB_MEDIAN_RATIO, np.asarray(b["over_max"]) / TB_MAX_RATIO)
+            series[label] = (ratio, np.ones(ratio.shape, dtype=bool))
+    if series:
+        panels.append(("free-motion tests: motor torque balance e = Km·i − T/N − Tf(ω) − Jeff·dω/dt (measured signals)", series))
+    return panels
+
+
+def _spectra_figure(out, panels: list[tuple[str, dict]], findings: list, names: list[str]) -> None:
+    """`residual_spectra.png`: each panel's spectra as bars in units of the detection threshold (a bar
+    above the dashed line at 1 is a peak the loop screens), orders the tests do not resolve (less than
+    one cycle of the wave generator) shaded and left out, and the orders of the named effects marked."""
+    left_out = [title.split(":")[0] for title, series in panels if not any(r.any() for _, r in series.values())]
+    panels = [(title, series) for title, series in panels if any(r.any() for _, r in series.values())]
+    if not panels:
+        return
+    named = {}
+    for f in findings:
+        for k in f.get("orders") or []:
+            named.setdefault(int(k), []).append(f["effect"])
+    k = np.arange(1, MAX_ORDER + 1)
+    fig, axes = plt.subplots(len(panels), 1, figsize=(8.5, 2.7 * len(panels) + 0.4), squeeze=False, sharex=True)
+    for ax, (title, series) in zip(axes[:, 0], panels):
+        w = 0.8 / len(series)
+        top = 1.2
+        unresolved = np.zeros(MAX_ORDER, dtype=bool)
+        for j, (label, (ratio, resolved)) in enumerate(series.items()):
+            unresolved |= ~resolved
+            shown = np.where(resolved, ratio, np.nan)
+            ax.bar(k + (j - (len(series) - 1) / 2) * w, shown, width=w, label=label, color=f"C{j}")
+            if np.any(resolved):
+                top = max(top, float(np.nanmax(shown)) * 1.15)
+        for order in np.flatnonzero(unresolved) + 1:
+            ax.axvspan(order - 0.45, order + 0.45, color="0.85", zorder=0)
+        if unresolved.any():
+            ax.text(0.99, 0.97, "grey: order not resolved (< 1 cycle)", transform=ax.transAxes, ha="right", va="top",
+                    fontsize=7, color="0.3")
+        for order, effects in named.items():
+            if 1 <= order <= MAX_ORDER:
+                ax.axvspan(order - 0.45, order + 0.45, color="gold", alpha=0.25, zorder=0)
+                ax.text(order, top * 0.97, ", ".join(effects), ha="center", va="top", fontsize=7, rotation=0)
+        ax.axhline(1.0, color="k", ls="--", lw=0.9, label="detection threshold")
+        ax.set_ylim(0.0, top)
+        ax.set_ylabel("amplitude / threshold (-)")
+        ax.set_title(title, fontsize=9)
+        ax.legend(fontsize=7, loc="upper left", framealpha=0.9)
+        ax.grid(alpha=0.3, axis="y")
+    axes[-1, 0].set_xticks(k)
+    axes[-1, 0].set_xlabel("order (cycles per wave-generator turn)"
+                           + "".join(f"\n{t}: not shown, no order resolved (the wave generator turns by less than one cycle)"
+                                     for t in left_out))
+    fig.suptitle("Residual order spectra of the fitted paper model" + (" (gold: orders of the named effects)" if named else ""),
+                 fontsize=10)
+    fig.tight_layout()
+    _save(fig, out, "residual_spectra.png", names, dpi=110)
