@@ -1216,7 +1216,7 @@ def diagnose(
     (re-whitened by their own noise model), computing only columns not seen yet.
 
     **Returns:** a `Diagnosis` with findings (most important first), evidence, the extended model,
-    stage timings (s) and simulated torque traces for the figures.
+    stage timings (s) and simulated torque and motor-velocity traces for the figures.
 
     The stages, in order: base fit, setup (columns, compiled problem, base simulation), evidence
     and screened orders, torque-balance route, then per round: noise model, Jacobian, refinement,
@@ -1292,6 +1292,7 @@ def diagnose(
     tr0 = loop.prob.trajectories(jnp.asarray(loop.tile(z_plain)), p_base, batch)
     tr1 = loop.prob.trajectories(jnp.asarray(loop.tile(z_cur)), p_base, batch) if findings else tr0
     traces = {"torque_base": np.asarray(tr0.torque), "torque_extended": np.asarray(tr1.torque),
+              "motor_velocity_base": np.asarray(tr0.motor_velocity), "motor_velocity_extended": np.asarray(tr1.motor_velocity),
               "torsion_extended": np.asarray(tr1.torsion), "motor_position": np.asarray(tr1.motor_position)}
     named_at = {}
     for f in findings:

@@ -291,32 +291,38 @@ def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
     if d.findings and d.traces:
         batch = stack_experiments(exps)
         m = np.asarray(batch.mask)
-        base_T, ext_T = d.traces["torque_base"], d.traces["torque_extended"]
         free = np.asarray(batch.free) > 0
-        pick = [j for j in (int(np.argmax(~free)) if (~free).any() else None, int(np.argmax(free)) if free.any() else None)
-                if j is not None]
-        fig, axes = plt.subplots(len(pick), 1, figsize=(8, 2.6 * len(pick)), squeeze=False)
-        for ax, j in zip(axes[:, 0], pick):
+        picks = most_improved_records(batch, d.traces)
+        fig, axes = plt.subplots(len(picks), 1, figsize=(8.5, 2.8 * len(picks)), squeeze=False)
+        for ax, (j, channel, reduction) in zip(axes[:, 0], picks):
             t = np.asarray(batch.time[j])[m[j]]
-            meas = np.asarray(batch.torque[j])[m[j]]
-            ax.plot(t, meas - base_T[j][m[j]], color="0.6", lw=0.7, label="measured − paper model")
-            ax.plot(t, ext_T[j][m[j]] - base_T[j][m[j]], color="C3", lw=1.0, label="extended − paper model")
-            ax.set_ylabel("torque residual (N·m)")
-            ax.set_title(f"{files[j]} ({'free' if free[j] else 'constrained'})", fontsize=9)
+            meas = np.asarray(getattr(batch, channel)[j])[m[j]]
+            base = d.traces[f"{channel}_base"][j][m[j]]
+            res = meas - base
+            ax.plot(t, res, color="0.75", lw=0.6, label="measured − paper model")
+            n_avg = max(3, int(0.01 * res.size) | 1)  # 1 % of the record, odd: a centred moving average
+            ax.plot(t, np.convolve(res, np.ones(n_avg) / n_avg, mode="same"), color="0.25", lw=0.9,
+                    label=f"measured − paper model, {n_avg}-sample moving average")
+            ax.plot(t, d.traces[f"{channel}_extended"][j][m[j]] - base, color="C3", lw=1.1, label="extended − paper model")
+            ax.set_ylabel(f"{_RESIDUAL_LABELS[channel]} residual ({_RESIDUAL_UNITS[channel]})")
+            ax.set_title(f"{files[j]} ({'free' if free[j] else 'constrained'}): the extension removes "
+                         f"{100 * reduction:.0f} % of its squared {_RESIDUAL_LABELS[channel]} residual", fontsize=9)
             ax.grid(alpha=0.3)
-        axes[0, 0].legend(fontsize=8)
+            ax.legend(fontsize=7, loc="upper right", framealpha=0.9)
         axes[-1, 0].set_xlabel("time (s)")
+        fig.suptitle("Where the named effects matter most (per kind of test; base parameters of the final fit)", fontsize=10)
         fig.tight_layout()
         _save(fig, out, "residual_before_after.png", names, dpi=110)
         # hysteresis loop of a constrained test: torque against torsion, measured vs both models
         if (~free).any():
-            j = int(np.argmax(~free))
+            # the locked record the extension changes most (the first locked record if it acts on free tests only)
+            j = next((j for j, _, _ in picks if not free[j]), int(np.argmax(~free)))
             tw = d.traces["torsion_extended"][j][m[j]]
             fig, ax = plt.subplots(figsize=(6, 4.5))
-            ax.plot(tw * 1e3, np.asarray(batch.torque[j])[m[j]], color="0.6", lw=0.6, label="measured")
-            ax.plot(tw * 1e3, base_T[j][m[j]], color="C0", lw=1.0, label="paper model")
-            ax.plot(tw * 1e3, ext_T[j][m[j]], color="C3", lw=1.0, ls="--", label="extended model")
-            ax.set_xlabel("torsion Δθ (mrad)")
+            ax.plot(tw * 1e3, np.asarray(batch.torque[j])[m[j]], color="0.6", lw=0.6, label="measured torque")
+            ax.plot(tw * 1e3, d.traces["torque_base"][j][m[j]], color="C0", lw=1.0, label="paper model")
+            ax.plot(tw * 1e3, d.traces["torque_extended"][j][m[j]], color="C3", lw=1.0, ls="--", label="extended model")
+            ax.set_xlabel("torsion Δθ of the extended model (mrad)")
             ax.set_ylabel("torque T (N·m)")
             ax.set_title(f"Hysteresis loop, {files[j]} (constrained)")
             ax.legend(fontsize=8)
@@ -474,3 +480,32 @@ def _spectra_figure(out, panels: list[tuple[str, dict]], findings: list, names: 
                  fontsize=10)
     fig.tight_layout()
     _save(fig, out, "residual_spectra.png", names, dpi=110)
+
+
+_RESIDUAL_LABELS = {"torque": "torque", "motor_velocity": "motor velocity"}
+_RESIDUAL_UNITS = {"torque": "N·m", "motor_velocity": "rad/s"}
+
+
+def most_improved_records(batch, traces: dict) -> list[tuple[int, str, float]]:
+    """Per kind of test (locked first, then free), the record and channel where the extended model
+    removes the largest share of the paper model's squared residual (in-sample, the final base
+    parameters with and without the named effects): [(experiment index, channel, share)]. Channels
+    are those with `<channel>_base` / `<channel>_extended` traces (torque, motor velocity)."""
+    m = np.asarray(batch.mask)
+    free = np.asarray(batch.free) > 0
+    out = []
+    for in_mode in (~free, free):
+        best = None
+        for j in np.flatnonzero(in_mode):
+            for channel in _RESIDUAL_LABELS:
+                if f"{channel}_base" not in traces or not m[j].any():
+                    continue
+                meas = np.asarray(getattr(batch, channel)[j])[m[j]]
+                before = float(np.sum((meas - traces[f"{channel}_base"][j][m[j]]) ** 2))
+                after = float(np.sum((meas - traces[f"{channel}_extended"][j][m[j]]) ** 2))
+                share = 1.0 - after / before if before > 0 else 0.0
+                if best is None or share > best[2]:
+                    best = (int(j), channel, share)
+        if best is not None:
+            out.append(best)
+    return out
