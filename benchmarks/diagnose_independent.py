@@ -11,13 +11,16 @@ the time per dataset.
 
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
 [--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]
-[--low-speed lugre] [--noise per_record] [--consistency-any-mode]`.
+[--low-speed lugre] [--noise per_record] [--viscous-exponent 0.7] [--no-physical-sign] [--consistency-any-mode]`.
 
 `--low-speed lugre` and `--noise per_record` draw the datasets from a variant of the bench (a LuGre
 low-speed law with a stiction bump instead of exact stick–slip; sensor noise scaled with each
 record's range instead of one level per sensor, as the generator of issue 18's first test did):
 a check that the loop's rules were not tuned to the default bench. Keep such datasets apart
-(`--datasets`): `_matches` does not tell the variants apart.
+(`--datasets`): `_matches` does not tell these two variants apart. `--viscous-exponent k` draws
+them with a viscous friction growing as |ω|^k instead of linearly (`Deviations.viscous_exponent`;
+`_matches` checks it). `--no-physical-sign` names effects whatever the sign of their fitted
+parameter (the loop before 2026-11-29).
 """
 
 import argparse
@@ -44,7 +47,7 @@ from hdjax import (  # noqa: E402
     identify_paper,
     load_dataset,
 )
-from hdjax.bench import make_dataset  # noqa: E402
+from hdjax.bench import Deviations, make_dataset  # noqa: E402
 
 EFFECTS = [
     "kinematic_error", "torque_sensor_ripple", "cogging", "position_dependent_friction", "nonlinear_stiffness",
@@ -93,9 +96,9 @@ def hidden(effects: dict) -> dict:
     return {k: sorted(v.get("orders") or []) if k in PERIODIC else [] for k, v in effects.items()}
 
 
-def _matches(folder: pathlib.Path, case: dict) -> bool:
-    """True if `folder` holds a dataset made for `case`: same seed, drive, number of records, and
-    hidden effects with the same SNR and orders."""
+def _matches(folder: pathlib.Path, case: dict, viscous_exponent: float = 1.0) -> bool:
+    """True if `folder` holds a dataset made for `case`: same seed, drive, number of records, viscous
+    law, and hidden effects with the same SNR and orders."""
     f = folder / "truth.yaml"
     if not f.exists():
         return False
@@ -103,6 +106,7 @@ def _matches(folder: pathlib.Path, case: dict) -> bool:
     fx = truth.get("effects") or {}
     return (truth.get("seed") == case["seed"] and str(truth.get("drive_name", "")).lower() == case["drive"]
             and len(truth.get("experiments") or []) == N_LOCKED + N_FREE
+            and float((truth.get("deviations") or {}).get("viscous_exponent", 1.0)) == viscous_exponent
             and set(fx) == set(case["effects"])
             and all(abs(fx[k]["snr_target"] - v["snr"]) < 1e-9 and fx[k].get("orders") == v.get("orders")
                     for k, v in case["effects"].items()))
@@ -132,6 +136,10 @@ def main() -> int:
                     help="the bench's low-speed friction law (default: exact stick-slip with breakaway)")
     ap.add_argument("--noise", default="per_sensor", choices=("per_sensor", "per_record"),
                     help="sensor noise: one level per sensor (default) or scaled with each record's range")
+    ap.add_argument("--no-physical-sign", action="store_true",
+                    help="name an effect whatever the sign of its fitted parameter (before 2026-11-29)")
+    ap.add_argument("--viscous-exponent", type=float, default=1.0,
+                    help="the bench's viscous friction grows as |w|^k (default 1: linear, eq. 9's law)")
     ap.add_argument("--consistency-any-mode", action="store_true",
                     help="diagnose with consistency_in='any_acting' (records must improve in any mode where the candidate "
                          "gains beyond the effect size, not only in the mode where it gains most)")
@@ -145,9 +153,10 @@ def main() -> int:
             continue
         with tempfile.TemporaryDirectory() as tmp:
             folder = pathlib.Path(args.datasets or tmp) / f"seed_{case['seed']}"
-            if not _matches(folder, case):
+            if not _matches(folder, case, args.viscous_exponent):
                 make_dataset(folder, drive=case["drive"], seed=case["seed"], n_locked=N_LOCKED, n_free=N_FREE, duration=DURATION,
-                             effects=case["effects"] or None, low_speed=args.low_speed, noise=args.noise)
+                             effects=case["effects"] or None, low_speed=args.low_speed, noise=args.noise,
+                             deviations=Deviations(viscous_exponent=args.viscous_exponent))
             ds = load_dataset(folder)
         exps = [ds.experiments[i] for i in ds.dynamic_indices()]
         t0 = time.perf_counter()
@@ -155,7 +164,7 @@ def main() -> int:
         t_paper = time.perf_counter() - t0
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
                      two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
-                     consistency_in=consistency_in,
+                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign,
                      log=print if args.log else (lambda *_: None))
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
@@ -163,7 +172,8 @@ def main() -> int:
         row = {"seed": case["seed"], "drive": case["drive"], "hidden": truth, "named": found, "right": right,
                "model_form": [m["assumption"] for m in d.model_form], "time_s": round(dt, 1),
                "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
-               "bench": {"low_speed": args.low_speed, "noise": args.noise},
+               "bench": {"low_speed": args.low_speed, "noise": args.noise, "viscous_exponent": args.viscous_exponent},
+               "physical_sign": not args.no_physical_sign,
                "consistency_in": consistency_in,
                "stages_s": {"paper_identification": round(t_paper, 1), **{k: round(v, 1) for k, v in d.timing.items()}}}
         rows.append(row)

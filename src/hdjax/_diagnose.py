@@ -889,6 +889,32 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
 DRIFT_EFFECTS = {"thermal_drift": (("Tvp", "Tvn"), "free", 1.0)}
 
 
+#: The sign SPEC §4's physics gives an effect's fitted parameter: friction falls as the lubricant
+#: warms (β > 0), meshing friction grows with the transmitted torque (μ > 0), the stiffness rises
+#: with torsion (K3 > 0), the flexspline's rate-independent loop dissipates (Th > 0), the amplifier
+#: lags (τd > 0). A term fitted with the other sign absorbs some other misfit and is not that
+#: effect: on clean independent-bench data whose viscous friction grows as |ω|^0.7 instead of
+#: linearly (a drive's no-load running torque often does), the loop named a `thermal_drift` with
+#: β = −0.13, friction *rising* over the session by 13 % (2026-11-29, seed 5010). A candidate is
+#: named only when every held-out fold fit has this sign (`Significance.physical_sign`).
+#: Lost motion (|backlash|) and the periodic terms (a phase) have no sign.
+PHYSICAL_SIGN = {"thermal_drift": ("beta", 1.0), "load_dependent_friction": ("mu", 1.0), "nonlinear_stiffness": ("K3", 1.0),
+                 "rate_independent_hysteresis": ("Th", 1.0), "input_delay": ("delay", 1.0)}
+
+
+def _physical_sign(loop: _Loop, c: str, zs: np.ndarray, cols_c: list[int]) -> bool:
+    """True when candidate `c`'s parameter has the sign of `PHYSICAL_SIGN` in every held-out fold fit
+    `zs` (one row per experiment; columns `cols_c` are its own), or `c` has no such sign."""
+    if c not in PHYSICAL_SIGN:
+        return True
+    field, sign = PHYSICAL_SIGN[c]
+    for j in cols_c:
+        col = loop.cols[j - loop.n_base]
+        if col.field == field:
+            return bool(np.all(sign * (col.start + col.scale * zs[:, j]) > 0))
+    return True
+
+
 def _drift_share(ff: _FoldFits, pred_before: np.ndarray, steps: tuple[np.ndarray, np.ndarray], cols_c: list[int],
                  modulated: list[int], records: np.ndarray, sign: float) -> float:
     """The between-record share (`_FoldFits.between_record_share`) of a drift term with columns
@@ -940,6 +966,9 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
             # record's own: the per-record rule (`MAX_RECORD_LOSS`) judges effects only
             rule_c = dataclasses.replace(rule, max_record_loss=None) if c in MODEL_FORM else rule
             s.update(_judge(res_before, res_after, folds, loop.modes, s["k"], rule_c, drift_share=drift))
+            if c in PHYSICAL_SIGN:
+                s["physical_sign"] = _physical_sign(loop, c, steps[c][0], cand_idx[c])
+                s["significant"] = s["significant"] and (s["physical_sign"] or not rule.physical_sign)
         else:
             s.update(gain=float(predicted[c]), significant=False)
         scores[c] = s
@@ -951,6 +980,7 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
                   if s["acting_mode_gain_without_best"] is not None else "") + ")" if s["simulated"] else "")
             + (f" (between-record share {drift:.2f})" if drift is not None else "")
             + (f" contradicted by held-out experiment {s['contradicted_by']}" if s.get("contradicted_by") is not None else "")
+            + (f" fitted with the unphysical sign of {PHYSICAL_SIGN[c][0]}" if s.get("physical_sign") is False else "")
             + (" significant" if s["significant"] else ""))
         if s["simulated"]:
             log("    per held-out experiment: " + " ".join(f"{100 * g:+.0f}" for g in s["per_experiment_gain"])
@@ -1179,6 +1209,7 @@ def diagnose(
     readapt_after_form: bool = True,
     two_stage_periodic: bool = True,
     consistency_in: str = OUTPUT_ERROR_RULES.consistency_in,
+    physical_sign: bool = OUTPUT_ERROR_RULES.physical_sign,
     log=lambda *_: None,
 ) -> Diagnosis:
     """Find the SPEC §4 effects that the data show beyond the paper's model (see module docstring).
@@ -1212,6 +1243,8 @@ def diagnose(
     screening); `min_improved_fraction` of the held-out experiments of the mode where a candidate
     acts must improve (`consistency_in`: that mode is the one where it gains most, "largest_gain", or
     any mode where it gains beyond `min_relative_gain`, "any_acting"; see `Significance`).
+    `physical_sign`: an effect whose physics fixes the sign of its parameter (`PHYSICAL_SIGN`) is
+    named only with that sign in every held-out fold fit (default True).
     `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
     (re-whitened by their own noise model), computing only columns not seen yet.
 
@@ -1229,7 +1262,8 @@ def diagnose(
     candidates, model_form = _check_names(candidates, model_form, cross_validation)
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
-                               min_improved_fraction=min_improved_fraction, consistency_in=consistency_in)
+                               min_improved_fraction=min_improved_fraction, consistency_in=consistency_in,
+                               physical_sign=physical_sign)
     batch = stack_experiments(experiments)
     n_exp = len(experiments)
     sigma = noise_levels(batch)

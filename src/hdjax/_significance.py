@@ -68,7 +68,9 @@ class Significance:
     `consistency_in` which mode's held-out experiments must improve in
     `min_improved_fraction` of cases: "largest_gain" (the mode where the candidate gains most; the
     default) or "any_acting" (any mode where it gains more than `min_relative_gain`; measured on a
-    variant of the bench, not the default: benchmarks/RESULTS.md, twenty-fifth session)."""
+    variant of the bench, not the default: benchmarks/RESULTS.md, twenty-fifth session);
+    `physical_sign` an effect whose physics fixes the sign of its parameter (β, μ, K3, Th, τd; the
+    dynamic diagnosis's `hdjax._diagnose.PHYSICAL_SIGN`) must have that sign in every held-out fit."""
 
     min_relative_gain: float = 0.05
     min_improved_fraction: float = 0.75
@@ -79,6 +81,7 @@ class Significance:
     min_gain_without_best: float = MIN_GAIN_WITHOUT_BEST
     max_record_loss: float | None = MAX_RECORD_LOSS
     consistency_in: str = "largest_gain"
+    physical_sign: bool = True
 
     def __post_init__(self):
         if self.consistency_in not in ("largest_gain", "any_acting"):
