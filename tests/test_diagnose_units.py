@@ -255,28 +255,25 @@ def test_an_effect_fitted_with_the_sign_its_physics_forbids_is_not_that_effect()
     """`_physical_sign`: a thermal drift with β < 0 (friction rising over the session), a negative
     input delay (an advance), a softening cubic and so on are refused in any held-out fold fit;
     lost motion (|backlash|) and periodic terms have no sign. Every signed effect of SPEC §4 is covered."""
-    from types import SimpleNamespace
-
     from hdjax._diagnose import PHYSICAL_SIGN, _Column, _physical_sign
 
     cols = [_Column("kinematic_error", "kinematic_error_sin", 0, 1e-5, 0.0), _Column("thermal_drift", "beta", None, 1.0, 0.0),
             _Column("input_delay", "delay", None, 1e-3, 0.0), _Column("lost_motion", "backlash", None, 1e-5, 1e-9),
             _Column("nonlinear_stiffness", "K3", None, 2e8, 0.0)]
     n_base = 2
-    loop = SimpleNamespace(cols=cols, n_base=n_base)
     zs = np.zeros((4, n_base + len(cols)))
     zs[:, 3] = [0.1, 0.1, 0.2, 0.2]  # β > 0 in both folds
     zs[:, 4] = [0.5, 0.5, -0.1, -0.1]  # a delay that is an advance in one fold
     zs[:, 5] = [-3.0, -3.0, -3.0, -3.0]  # |backlash|: any sign
     zs[:, 6] = [-0.2, -0.2, -0.3, -0.3]  # softening cubic
     zs[:, 2] = [-1.0, 1.0, -1.0, 1.0]  # a periodic coefficient: any sign
-    assert _physical_sign(loop, "thermal_drift", zs, [3])
-    assert not _physical_sign(loop, "input_delay", zs, [4])
-    assert _physical_sign(loop, "lost_motion", zs, [5])
-    assert not _physical_sign(loop, "nonlinear_stiffness", zs, [6])
-    assert _physical_sign(loop, "kinematic_error", zs, [2])
+    assert _physical_sign(cols, n_base, "thermal_drift", zs, [3])
+    assert not _physical_sign(cols, n_base, "input_delay", zs, [4])
+    assert _physical_sign(cols, n_base, "lost_motion", zs, [5])
+    assert not _physical_sign(cols, n_base, "nonlinear_stiffness", zs, [6])
+    assert _physical_sign(cols, n_base, "kinematic_error", zs, [2])
     zs[2, 3] = -0.01  # one fold's β < 0
-    assert not _physical_sign(loop, "thermal_drift", zs, [3])
+    assert not _physical_sign(cols, n_base, "thermal_drift", zs, [3])
     assert set(PHYSICAL_SIGN) == {"thermal_drift", "load_dependent_friction", "nonlinear_stiffness",
                                   "rate_independent_hysteresis", "input_delay"}
     assert Significance().physical_sign and not Significance(physical_sign=False).physical_sign

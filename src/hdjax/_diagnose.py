@@ -902,14 +902,15 @@ PHYSICAL_SIGN = {"thermal_drift": ("beta", 1.0), "load_dependent_friction": ("mu
                  "rate_independent_hysteresis": ("Th", 1.0), "input_delay": ("delay", 1.0)}
 
 
-def _physical_sign(loop: _Loop, c: str, zs: np.ndarray, cols_c: list[int]) -> bool:
+def _physical_sign(cols: list[_Column], n_base: int, c: str, zs: np.ndarray, cols_c: list[int]) -> bool:
     """True when candidate `c`'s parameter has the sign of `PHYSICAL_SIGN` in every held-out fold fit
-    `zs` (one row per experiment; columns `cols_c` are its own), or `c` has no such sign."""
+    `zs` (one row per experiment: `n_base` base values, then the effect columns `cols`; `cols_c` are
+    `c`'s indices into a row), or `c` has no such sign."""
     if c not in PHYSICAL_SIGN:
         return True
     field, sign = PHYSICAL_SIGN[c]
     for j in cols_c:
-        col = loop.cols[j - loop.n_base]
+        col = cols[j - n_base]
         if col.field == field:
             return bool(np.all(sign * (col.start + col.scale * zs[:, j]) > 0))
     return True
@@ -967,7 +968,7 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
             rule_c = dataclasses.replace(rule, max_record_loss=None) if c in MODEL_FORM else rule
             s.update(_judge(res_before, res_after, folds, loop.modes, s["k"], rule_c, drift_share=drift))
             if c in PHYSICAL_SIGN:
-                s["physical_sign"] = _physical_sign(loop, c, steps[c][0], cand_idx[c])
+                s["physical_sign"] = _physical_sign(loop.cols, loop.n_base, c, steps[c][0], cand_idx[c])
                 s["significant"] = s["significant"] and (s["physical_sign"] or not rule.physical_sign)
         else:
             s.update(gain=float(predicted[c]), significant=False)
