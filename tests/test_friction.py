@@ -94,6 +94,21 @@ HIDDEN = {
 }
 
 
+def test_a_drift_of_rising_friction_is_not_named_thermal_drift():
+    """SPEC §4's thermal drift is friction *falling* as the lubricant warms (β > 0). Records whose
+    viscous friction rises over the session (β = −0.6: wear-in, a cooling room) are explained by
+    the same term with β < 0, but that is not the effect: with `physical_sign` (the default) it is
+    not named; without the rule it is. The data come from the model's own friction law on purpose:
+    this checks the rule, not a detection on independent data."""
+    structure, extra, start_step = HIDDEN["thermal_drift"]
+    pr = _problem(make_records(structure=structure, extra=dict(extra, thermal_beta=-0.6), seed=3, start_step=start_step))
+    named = [f["effect"] for f in diagnose_friction(pr, physical_sign=False, log=lambda m: None).findings]
+    assert named[:1] == ["thermal_drift"], named
+    d = diagnose_friction(pr, log=lambda m: None)
+    assert "thermal_drift" not in [f["effect"] for f in d.findings]
+    assert d.rounds[0]["thermal_drift"]["relative_reduction"] > 0.2 and not d.rounds[0]["thermal_drift"]["significant"]
+
+
 @pytest.mark.parametrize("effect", sorted(HIDDEN))
 def test_hidden_effect_found(effect):
     structure, extra, start_step = HIDDEN[effect]

@@ -72,7 +72,10 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    odd experiment is no finding; without it, the mode where the effect acts must still gain half
    the effect size, `MIN_GAIN_WITHOUT_BEST`), and neither the locked nor the free tests may get worse beyond
    that chance level or a quarter of what the other gains (`MODE_TRADE`; a term that fits one kind
-   of test at the other's expense explains no drive; these values are one `Significance`). The
+   of test at the other's expense explains no drive; these values are one `Significance`). An
+   effect whose physics fixes the sign of its parameter (`PHYSICAL_SIGN`: β, μ, K3, Th, τd > 0)
+   needs that sign in every held-out fold fit: with the other sign it absorbs some other misfit
+   and is not that effect. The
    harm ratio (what the held-out experiments it makes worse lose over what
    those it improves gain) is reported, not used: a real effect periodic in θm hurts free-motion
    tests whose simulated θm has drifted from the true one (measured 0.47 for a true kinematic

@@ -314,10 +314,12 @@ class FrictionDiagnosis:
 
 
 def diagnose_friction(problem: FrictionProblem, *, min_gain: float = FRICTION_RULES.min_relative_gain,
-                      candidates=CANDIDATES, rows: Rows | None = None, log=print) -> FrictionDiagnosis:
+                      candidates=CANDIDATES, rows: Rows | None = None, physical_sign: bool = FRICTION_RULES.physical_sign,
+                      log=print) -> FrictionDiagnosis:
     """Greedy cross-validated selection of friction extensions (module docstring), named under
-    `FRICTION_RULES` with its effect size set to `min_gain`."""
-    rule = dataclasses.replace(FRICTION_RULES, min_relative_gain=min_gain)
+    `FRICTION_RULES` with its effect size set to `min_gain`; with `physical_sign` a thermal drift
+    only where every fold fits β > 0 (friction falls as the lubricant warms, SPEC §4)."""
+    rule = dataclasses.replace(FRICTION_RULES, min_relative_gain=min_gain, physical_sign=physical_sign)
     rows = friction_folds(problem) if rows is None else rows
     why = applicable(problem)
     skipped = {c: why[c] for c in candidates if why[c] is not None}
@@ -334,8 +336,12 @@ def diagnose_friction(problem: FrictionProblem, *, min_gain: float = FRICTION_RU
                      for b, f in enumerate(current.folds)]
             res = _cv_fit(problem, rows, folds)
             ok, gain, frac = _significant(current, res, rule)
+            # friction falls as the lubricant warms (SPEC §4): a drift fitted the other way is no thermal drift
+            physical = name != "thermal_drift" or all(float(fold_params(problem, f).thermal_beta) > 0 for f in res.folds)
+            ok = ok and (physical or not rule.physical_sign)
             scores[name] = {"significant": ok, "gain": gain, "folds_improved": frac, "result": res}
-            log(f"  + {name}: held-out RMS {current.rms:.4g} → {res.rms:.4g} N·m ({gain:+.1%}, better in {frac:.0%} of folds)")
+            log(f"  + {name}: held-out RMS {current.rms:.4g} → {res.rms:.4g} N·m ({gain:+.1%}, better in {frac:.0%} of folds)"
+                + ("" if physical else ", fitted with friction rising over the session (β < 0)"))
         return scores
 
     def accept(best: str, scores: dict[str, dict]) -> None:

@@ -9,7 +9,8 @@ improve (`min_improved_fraction` = 0.8: every fold with up to 4 folds, all but o
 chance-level terms (Δχ² in sensor-noise units) need a noise model, which friction-only records
 (joint torque minus a rigid-body model, no sensor noise level) do not give; they are not used
 there, nor are the per-mode rule `min_gain_without_best` (friction-only data have one mode, judged
-by its folds) and the per-record rule `max_record_loss`.
+by its folds) and the per-record rule `max_record_loss`. Both use `physical_sign`: an effect is
+named only with the sign its physics gives its parameter (SPEC §4).
 
 Both loops are one greedy forward selection (`forward_selection`): each round screens the
 candidates left against the current model, names the significant one that gains most, adds it,
@@ -70,7 +71,8 @@ class Significance:
     default) or "any_acting" (any mode where it gains more than `min_relative_gain`; measured on a
     variant of the bench, not the default: benchmarks/RESULTS.md, twenty-fifth session);
     `physical_sign` an effect whose physics fixes the sign of its parameter (β, μ, K3, Th, τd; the
-    dynamic diagnosis's `hdjax._diagnose.PHYSICAL_SIGN`) must have that sign in every held-out fit."""
+    dynamic diagnosis's `hdjax._diagnose.PHYSICAL_SIGN`; the friction-only diagnosis's thermal
+    drift β) must have that sign in every held-out fit."""
 
     min_relative_gain: float = 0.05
     min_improved_fraction: float = 0.75
