@@ -883,13 +883,12 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
 
 
 #: Effects that change a base parameter from record to record (a drift over the session), with the
-#: base parameters they change, the test mode where they act and the sign their fitted parameter
-#: must have. Such a term's size is not its share of the whole residual: thermal drift on the
+#: base parameters they change and the test mode where they act. Such a term's size is not its share of the whole residual: thermal drift on the
 #: independent bench (β = 0.47 % of the viscous friction, 4.5× the velocity noise before the base fit
 #: takes up its mean) gained 1.1 % of the held-out whitened error, but 80 % of what a free viscous
 #: friction per record would gain (bench seed 5009; 2026-11-27); so it is judged by that share
-#: (`Significance.min_drift_share`). Friction falls as the lubricant warms: β > 0 (SPEC §4).
-DRIFT_EFFECTS = {"thermal_drift": (("Tvp", "Tvn"), "free", 1.0)}
+#: (`Significance.min_drift_share`). Its fit's sign must be physical (`PHYSICAL_SIGN`: β > 0).
+DRIFT_EFFECTS = {"thermal_drift": (("Tvp", "Tvn"), "free")}
 
 
 #: The sign SPEC §4's physics gives an effect's fitted parameter: friction falls as the lubricant
@@ -934,7 +933,8 @@ def _drift_share_of(loop: _Loop, ff: _FoldFits, c: str, pred_before: np.ndarray,
                     cols_c: list[int]) -> float:
     """`_drift_share` of the drift candidate `c` (`DRIFT_EFFECTS`) on the tests of the mode where it
     acts; 0 where a base parameter it changes is not fitted."""
-    names, mode, sign = DRIFT_EFFECTS[c]
+    names, mode = DRIFT_EFFECTS[c]
+    sign = PHYSICAL_SIGN[c][1]
     fields = loop.prob.pmap.fields  # the base parameters, in the order of z[:n_base]
     if not all(n in fields for n in names):
         return 0.0

@@ -304,9 +304,9 @@ def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
             ax.plot(t, np.convolve(res, np.ones(n_avg) / n_avg, mode="same"), color="0.25", lw=0.9,
                     label=f"measured − paper model, {n_avg}-sample moving average")
             ax.plot(t, d.traces[f"{channel}_extended"][j][m[j]] - base, color="C3", lw=1.1, label="extended − paper model")
-            ax.set_ylabel(f"{_RESIDUAL_LABELS[channel]} residual ({_RESIDUAL_UNITS[channel]})")
+            ax.set_ylabel(f"{_CHANNEL_LABELS[channel]} residual ({CHANNEL_UNITS[channel]})")
             ax.set_title(f"{files[j]} ({'free' if free[j] else 'constrained'}): the extension removes "
-                         f"{100 * reduction:.0f} % of its squared {_RESIDUAL_LABELS[channel]} residual", fontsize=9)
+                         f"{100 * reduction:.0f} % of its squared {_CHANNEL_LABELS[channel]} residual", fontsize=9)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7, loc="upper right", framealpha=0.9)
         axes[-1, 0].set_xlabel("time (s)")
@@ -399,7 +399,7 @@ def friction_cv_figure(problem, d, path, max_panels: int = 4):
     return pathlib.Path(path)
 
 
-_SPECTRUM_CHANNELS = {"torque": "torque T", "motor_velocity": "motor velocity ωm", "output_position": "output position θo"}
+_CHANNEL_LABELS = {"torque": "torque T", "motor_velocity": "motor velocity ωm", "output_position": "output position θo"}
 _BALANCE_LABELS = {"e": "e (cogging, torque-sensor ripple)", "e*sign(w)": "e·sign(ω) (position-dependent friction)"}
 
 
@@ -414,7 +414,7 @@ def _spectrum_panels(evidence: dict) -> list[tuple[str, dict]]:
     panels = []
     for mode, title in (("constrained", "locked tests: simulated − measured"), ("free", "free-motion tests: simulated − measured")):
         series = {}
-        for channel, label in _SPECTRUM_CHANNELS.items():
+        for channel, label in _CHANNEL_LABELS.items():
             key = f"{mode}/{channel} (per-record normalised)"
             if key in spectra and key in detection:
                 info = detection[key]
@@ -482,8 +482,8 @@ def _spectra_figure(out, panels: list[tuple[str, dict]], findings: list, names: 
     _save(fig, out, "residual_spectra.png", names, dpi=110)
 
 
-_RESIDUAL_LABELS = {"torque": "torque", "motor_velocity": "motor velocity"}
-_RESIDUAL_UNITS = {"torque": "N·m", "motor_velocity": "rad/s"}
+#: the channels `most_improved_records` compares (the diagnosis keeps base and extended traces of these)
+_BEFORE_AFTER_CHANNELS = ("torque", "motor_velocity")
 
 
 def most_improved_records(batch, traces: dict) -> list[tuple[int, str, float]]:
@@ -497,7 +497,7 @@ def most_improved_records(batch, traces: dict) -> list[tuple[int, str, float]]:
     for in_mode in (~free, free):
         best = None
         for j in np.flatnonzero(in_mode):
-            for channel in _RESIDUAL_LABELS:
+            for channel in _BEFORE_AFTER_CHANNELS:
                 if f"{channel}_base" not in traces or not m[j].any():
                     continue
                 meas = np.asarray(getattr(batch, channel)[j])[m[j]]
