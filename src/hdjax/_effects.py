@@ -29,6 +29,7 @@ physics of the drive but of the bench and of the paper model's fixed choices:
 | `sensor_offset` | measured torque += `torque_offset` (N·m), measured velocity += `velocity_offset` (rad/s), true current = recorded − `current_offset` (A) |
 | `sensor_bandwidth` | first-order low-pass of the simulated torque and velocity with time constants `torque_lag`, `velocity_lag` (s) |
 | `input_between_samples` | the current between samples: linear + $\lambda$ (Catmull–Rom cubic through the same samples − linear), `reconstruction` = $\lambda$ (-; 0 = straight lines, 1 = the cubic) |
+| `viscous_friction_law` | eq. 9's viscous torque $T_v\omega$ × $((\omega^2 + \epsilon^2)/\omega_r^2)^{(\kappa-1)/2}$, $\kappa = e^{\lambda_\kappa}$ (`viscous_exponent` = $\lambda_\kappa$; 0 = the paper's linear law), $\omega_r$ = `viscous_reference` (rad/s; set from the data, not fitted), $\epsilon$ = `VISCOUS_LAW_SCALE`. hdjax's addition to SPEC §4b's four: a drive's running torque often grows slower than linearly with speed |
 """
 
 import dataclasses
@@ -49,6 +50,12 @@ MAX_ORDER = 8
 #: 1.5e-4–2.5e-4 rad (stick–slip and LuGre laws), from a start of 1e-3
 PRESLIDING_DISTANCE = 2e-4
 THERMAL_TAU = 600.0  # s: default time constant of `thermal_drift` (the lubricant's warm-up), shared by every path
+#: rad/s: the velocity scale ε below which `viscous_friction_law`'s power law |ω|^κ turns into a
+#: linear law of slope $T_v(\epsilon/\omega_r)^{\kappa-1}$, so that its derivative stays finite at
+#: ω = 0. Against the exact power law the torque differs by at most 0.5·|κ−1|·(ε/ω)² relative
+#: (0 < κ ≤ 3; tests/test_model_form.py shows the convergence as ε shrinks); Coulomb friction
+#: dominates below 0.1 rad/s on the drives here
+VISCOUS_LAW_SCALE = 1e-2
 PERIODIC = ("kinematic_error", "torque_sensor_ripple", "cogging", "position_dependent_friction")
 SCALAR = {
     "nonlinear_stiffness": ("K3",),
@@ -66,6 +73,7 @@ MODEL_FORM = {
     "sensor_offset": ("torque_offset", "velocity_offset", "current_offset"),
     "sensor_bandwidth": ("torque_lag", "velocity_lag"),
     "input_between_samples": ("reconstruction",),
+    "viscous_friction_law": ("viscous_exponent", "viscous_reference"),
 }
 MODEL_FORM_NAMES = tuple(MODEL_FORM)
 #: The scalar fields of every non-periodic term, effects and model_form alike.
@@ -140,6 +148,8 @@ class Effects(eqx.Module):
     torque_lag: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     velocity_lag: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     reconstruction: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    viscous_exponent: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
+    viscous_reference: Float[Array, ""] = eqx.field(default=10.0, converter=_as_float)
 
     def __check_init__(self):
         unknown = set(self.active) - set(EFFECT_NAMES) - set(MODEL_FORM)
@@ -183,6 +193,14 @@ class Effects(eqx.Module):
         for k, v in values.items():
             new = eqx.tree_at(lambda e: getattr(e, k), new, jnp.asarray(v, dtype=float))
         return dataclasses.replace(new, active=frozenset(self.active | {name}))
+
+
+def viscous_law_factor(velocity, exponent, reference, *, scale: float = VISCOUS_LAW_SCALE):
+    """`viscous_friction_law`'s factor on eq. 9's linear viscous torque (-):
+    $((\omega^2+\epsilon^2)/\omega_r^2)^{(\kappa-1)/2}$ with $\kappa = e^{\lambda_\kappa}$; 1 at
+    `exponent` λκ = 0. `velocity` ω and `reference` ωr (rad/s), `scale` ε (rad/s)."""
+    kappa = jnp.exp(exponent)
+    return jnp.exp(0.5 * (kappa - 1.0) * jnp.log((jnp.square(velocity) + scale**2) / jnp.square(reference)))
 
 
 def stiffness_torque(K1, torsion, effects: Effects):

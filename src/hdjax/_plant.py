@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._effects import Effects, dahl_rate, presliding_rate, stiffness_torque, thermal_factor
+from ._effects import Effects, dahl_rate, presliding_rate, stiffness_torque, thermal_factor, viscous_law_factor
 from ._experiment import Experiment
 from ._friction import STATE_SCALE
 from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_parts
@@ -246,6 +246,8 @@ def _friction(p: Parameters, drive: Drive, wm, theta_m, T, t_session, effects: E
     viscous, coulomb, stribeck = friction_parts(p, wm, smoothing, direction=direction)
     if "thermal_drift" in effects.active:
         viscous = viscous * thermal_factor(effects.beta, effects.tau, t_session)
+    if "viscous_friction_law" in effects.active:
+        viscous = viscous * viscous_law_factor(wm, effects.viscous_exponent, effects.viscous_reference)
     if "position_dependent_friction" in effects.active:
         coulomb = coulomb * (1.0 + effects.periodic("position_dependent_friction", theta_m))
     if "load_dependent_friction" in effects.active:
