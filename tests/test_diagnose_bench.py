@@ -14,13 +14,14 @@ Small datasets (4 locked + 4 free records of 1.5 s at 1 kHz) keep the suite fast
 check with fresh seeds is `benchmarks/diagnose_independent.py`.
 """
 
+import math
 import pathlib
 
 import jax
 import pytest
 
 from hdjax import diagnose_effects as diagnose, identify_paper, load_dataset
-from hdjax.bench import make_dataset
+from hdjax.bench import Deviations, make_dataset
 
 jax.config.update("jax_enable_x64", True)
 
@@ -109,3 +110,22 @@ def test_two_effects_on_the_independent_bench_are_both_named(tmp_path):
     d = _run(tmp_path, effects, seed=811, drive="hd2")
     found = _named(d)
     assert set(found) == set(effects), f"hidden {sorted(effects)}, named {found}:\n{_summary(d)}"
+
+
+def test_a_power_law_viscous_friction_is_adopted_as_model_form_with_its_exponent(tmp_path):
+    """Clean bench data whose viscous friction grows as |ω|^0.7 (`Deviations.viscous_exponent`; the
+    paper's law is linear): the loop adopts `viscous_friction_law` (hdjax's addition to SPEC §4b)
+    with κ near the bench's, and names no effect. The bench's law is its own code (an exact power
+    law, integrated by its fixed-step scheme); hdjax's is smoothed below 0.01 rad/s."""
+    folder = tmp_path / "bench"
+    make_dataset(folder, drive="hd1", seed=821, n_locked=N_LOCKED, n_free=N_FREE, duration=DURATION,
+                 deviations=Deviations(viscous_exponent=0.7))
+    ds = load_dataset(folder)
+    exps = [ds.experiments[i] for i in ds.dynamic_indices()]
+    d = diagnose(identify_paper(exps, ds.drive).parameters(), ds.drive, exps, max_findings=2)
+    form = {f["assumption"]: f for f in d.model_form}
+    assert "viscous_friction_law" in form, _summary(d)
+    kappa = math.exp(form["viscous_friction_law"]["adjustment"]["viscous_exponent"])
+    assert abs(kappa - 0.7) < 0.07, f"kappa {kappa:.3f} for 0.7 hidden:\n{_summary(d)}"
+    assert form["viscous_friction_law"]["gain"]["relative_reduction"] > 0
+    assert not d.findings, f"clean data, named {_named(d)}:\n{_summary(d)}"

@@ -6,8 +6,10 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
 1. Base model: the paper's identification, refined by a few trajectory-error LM steps (at the
    Jacobian tolerance). In the first round, before any effect, the base model's own assumptions
    (SPEC §4b `model_form`: low-speed friction scales, sensor offsets, sensor lags, the current's
-   path between samples) are screened by the same held-out rules and every significant one is
-   adopted (`Diagnosis.model_form`); each (experiment, channel) is weighted by its own noise
+   path between samples, and hdjax's fifth, the viscous law's exponent) are screened by the same
+   held-out rules and every significant one is adopted (`Diagnosis.model_form`); the viscous
+   law's held-out fits are damped (`DAMPED_SCREEN`), and once it is adopted the others are
+   screened again against the adjusted model; each (experiment, channel) is weighted by its own noise
    level and, where the current model leaves more, by that misfit (a bench is never exactly the
    model). The effects are then screened with a fresh Jacobian: once adjustments are adopted,
    the noise model is re-estimated and base + adjustments are re-fitted from a new Jacobian
@@ -978,8 +980,10 @@ STEP_FRACTIONS = (1.0, 0.5, 0.25)
 
 def _in_sample_step_fraction(loop: _Loop, ff: _FoldFits, chosen_idx: list[int], idx: list[int]) -> float:
     """The fraction of the all-experiment Gauss–Newton step of the columns `idx` (from the fit
-    without them) with the smallest simulated in-sample whitened SSE, among `STEP_FRACTIONS`: a
-    line search on the training data only, whose fraction then scales every held-out fold step."""
+    without them) with the smallest simulated in-sample whitened SSE, among `STEP_FRACTIONS`; that
+    fraction then scales every held-out fold step. The search sees every record, the held-out ones
+    included: a choice among three step lengths, not a fit, so the leak is small (three batch
+    simulations instead of one per fold for a search on each fold's training records)."""
     z0, z1 = ff.all_records_step(chosen_idx), ff.all_records_step(chosen_idx + idx)
     sse = [float(np.sum(loop.simulate_each(loop.tile(z0 + f * (z1 - z0)))[0] ** 2)) for f in STEP_FRACTIONS]
     return STEP_FRACTIONS[int(np.argmin(sse))]

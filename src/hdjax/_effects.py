@@ -196,7 +196,7 @@ class Effects(eqx.Module):
 
 
 def viscous_law_factor(velocity, exponent, reference, *, scale: float = VISCOUS_LAW_SCALE):
-    """`viscous_friction_law`'s factor on eq. 9's linear viscous torque (-):
+    r"""`viscous_friction_law`'s factor on eq. 9's linear viscous torque (-):
     $((\omega^2+\epsilon^2)/\omega_r^2)^{(\kappa-1)/2}$ with $\kappa = e^{\lambda_\kappa}$; 1 at
     `exponent` λκ = 0. `velocity` ω and `reference` ωr (rad/s), `scale` ε (rad/s)."""
     kappa = jnp.exp(exponent)
