@@ -1160,7 +1160,7 @@ class _Outcome:
 def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: list[str], remaining: list[str], cand_idx: dict,
                    folds: np.ndarray, fit_folds: np.ndarray, n_found_before: int, max_findings: int, misfit_scaling: bool,
                    reuse_jacobian: bool, refine_steps: int, refine_jacobians: int, confirm_top: int, rule: Significance,
-                   log, readapt_after_form: bool = True, two_stage_periodic: bool = True) -> None:
+                   log, readapt_after_form: bool = True, two_stage_periodic: bool = True, evidence_after_form=None) -> None:
     """The greedy rounds (module docstring, steps 3–5), recorded in `out`: each round re-estimates the
     noise model, takes one Jacobian (w.r.t. the base, the accepted effects and every candidate) at
     the current model, refines base + accepted effects, screens and accepts the best candidate
@@ -1231,6 +1231,13 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
             # judge them again against the adjusted model before any effect is screened
             log("  model_form: the other assumptions screened again against the adjusted base model")
             adopt_form(rest)
+        if DAMPED_SCREEN & set(out.adopted) and evidence_after_form is not None and evidence_after_form():
+            # and the periodic candidates' orders come from the adjusted model's residual spectra
+            # (the base model's misfit hid every peak on the |ω|^0.7 bench): a Jacobian with their columns
+            active = list(range(n_base)) + accepted_idx()
+            sel = active + [j for c in remaining for j in cand_idx[c]]
+            log(f"diagnose: round 1: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters (new orders)")
+            state.update(J=loop.jacobian(loop.z, sel), sel=sel)
 
     # then the effects, one per round; round 1 screens them with the Jacobian it already has
     def screen(pool: list[str]) -> dict[str, dict]:
@@ -1353,6 +1360,7 @@ def diagnose(
     # stage 3: evidence (residual spectra and covariate correlations of the base model), the orders
     # screened, the halves
     evidence, orders = residual_evidence(batch, traj, m, modes, sigma, p_base, drive)
+    requested_order = list(candidates)
     orders_of, candidates = _screened_orders(evidence, orders, candidates, log)
     folds, fit_folds = _folds(modes, cross_validation)
     cand_idx = {c: _candidate_columns(cols, c, orders_of.get(c, ()), offset=n_base) for c in list(candidates) + model_form}
@@ -1371,13 +1379,38 @@ def diagnose(
             remaining.remove(name)
     _drop_torque_balance_lookalikes(tb_findings, orders_of, cand_idx, remaining, cols, n_base, log)
 
+    def evidence_after_form() -> bool:
+        """The residual evidence again, at the base model adjusted by `DAMPED_SCREEN` items: the
+        periodic candidates' orders from its spectra (`remaining`, `cand_idx`, `orders_of`,
+        `candidates` and `evidence` updated in place). True if the periodic candidates changed."""
+        traj_f = loop.prob.trajectories(jnp.asarray(loop.tile(loop.z)), p_base, batch)
+        p_f = pmap.to_model(jnp.asarray(loop.z[:n_base]), p_base)
+        ev_f, orders_f = residual_evidence(batch, traj_f, m, modes, sigma, p_f, drive)
+        log("diagnose: residual evidence taken again at the adjusted base model")
+        periodic = [c for c in requested_order if c in PERIODIC and c not in tb_found]
+        new_of, new_cands = _screened_orders(ev_f, orders_f, periodic, log)
+        before = {c: tuple(orders_of.get(c, ())) for c in periodic if c in remaining}
+        after = {c: tuple(new_of[c]) for c in new_cands}
+        evidence.update(ev_f)
+        for c in periodic:
+            if c in remaining:
+                remaining.remove(c)
+            if c in candidates:
+                candidates.remove(c)
+        for c in new_cands:
+            orders_of[c] = new_of[c]
+            cand_idx[c] = _candidate_columns(cols, c, new_of[c], offset=n_base)
+            remaining.append(c)
+            candidates.append(c)
+        return before != after
+
     # stage 5: greedy rounds
     out = _Outcome(findings=tb_findings)
     _greedy_rounds(loop, out, evidence, model_form=model_form, remaining=remaining, cand_idx=cand_idx, folds=folds,
                    fit_folds=fit_folds, n_found_before=len(tb_found), max_findings=max_findings, misfit_scaling=misfit_scaling,
                    reuse_jacobian=reuse_jacobian, refine_steps=refine_steps, refine_jacobians=refine_jacobians,
                    confirm_top=confirm_top, rule=rule, log=log, readapt_after_form=readapt_after_form,
-                   two_stage_periodic=two_stage_periodic)
+                   two_stage_periodic=two_stage_periodic, evidence_after_form=evidence_after_form)
     chosen, adopted, findings, form_items, rounds, base_res = out.chosen, out.adopted, out.findings, out.form_items, out.rounds, out.base_res
 
     # stage 6: the extended model, its description, traces for the figures, what is left
