@@ -1390,7 +1390,6 @@ def diagnose(
         periodic = [c for c in requested_order if c in PERIODIC and c not in tb_found]
         new_of, new_cands = _screened_orders(ev_f, orders_f, periodic, log)
         before = {c: tuple(orders_of.get(c, ())) for c in periodic if c in remaining}
-        after = {c: tuple(new_of[c]) for c in new_cands}
         evidence.update(ev_f)
         for c in periodic:
             if c in remaining:
@@ -1402,6 +1401,9 @@ def diagnose(
             cand_idx[c] = _candidate_columns(cols, c, new_of[c], offset=n_base)
             remaining.append(c)
             candidates.append(c)
+        # the torque-balance route's look-alike rule holds for the new orders too
+        _drop_torque_balance_lookalikes(tb_findings, orders_of, cand_idx, remaining, cols, n_base, log)
+        after = {c: tuple(orders_of[c]) for c in periodic if c in remaining}
         return before != after
 
     # stage 5: greedy rounds
