@@ -206,6 +206,34 @@ def test_forward_selection_names_the_best_significant_candidate_each_round():
     assert forward_selection(["a", "b"], screen, accept, max_findings=0) == [] and pools == []
 
 
+def test_forward_selection_adopts_an_outside_winner_without_counting_it():
+    """The output-error diagnosis lets unadopted model_form assumptions compete with the effects:
+    `screen` scores a name outside the pool ("lag"); when it wins a round it is accepted, counts
+    towards no `max_findings` (`counts`), and the same pool is screened again."""
+    from hdjax._significance import forward_selection
+
+    pools, named, adopted = [], [], []
+
+    def screen(pool):
+        pools.append(list(pool))
+        scores = {"delay": {"significant": not adopted, "gain": 0.08}, "ripple": {"significant": True, "gain": 0.5}}
+        if "lag" not in adopted:  # the assumption competes until adopted
+            scores["lag"] = {"significant": "ripple" in named, "gain": 0.10}
+        return {c: v for c, v in scores.items() if c in pool or c == "lag"}
+
+    def accept(best, scores):
+        (adopted if best == "lag" else named).append(best)
+
+    rounds = forward_selection(["delay", "ripple"], screen, accept, max_findings=2, counts=lambda c: c != "lag")
+    # round 1 names the ripple; round 2 the lag beats the delay (a look-alike) and is adopted; the
+    # round is screened again and the delay, no longer significant, is not named
+    assert named == ["ripple"] and adopted == ["lag"] and len(rounds) == 3
+    assert pools == [["delay", "ripple"], ["delay"], ["delay"]]
+    # without `counts`, the adoption used up the second finding and the loop stopped there
+    pools.clear(), named.clear(), adopted.clear()
+    assert len(forward_selection(["delay", "ripple"], screen, accept, max_findings=2)) == 2 and adopted == ["lag"]
+
+
 def test_a_peak_left_at_a_named_order_is_not_called_unexplained_by_any_candidate():
     """`unexplained` lists residual order peaks of the final model; where a periodic finding sits at
     that order, the peak is what its fit leaves, and the report must not say that no candidate

@@ -19,6 +19,10 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    effects with round 1's Jacobian and noise model, as before; it is faster (one Jacobian and
    re-fit fewer) and names an input delay that the re-fitted sensor lags otherwise absorb (see
    `benchmarks/RESULTS.md`, seventeenth and eighteenth sessions, for both on the benchmark).
+   The assumptions not adopted in round 1 compete with the effects in every later round
+   (`form_competes`, default on since 2026-11-29): one that wins is adopted, names nothing, and
+   the round is screened again (a sensor lag hidden by a found ripple's misfit is otherwise taken
+   up by a false `input_delay`).
 2. Evidence from residuals: order spectra against the simulated wave-generator angle θm (cycles
    per turn) for torque, velocity and output position, split locked/free, and correlations of the
    residuals with torsion, torsion³, |T|·sign(ω), di/dt and session time. The periodic
@@ -1160,7 +1164,8 @@ class _Outcome:
 def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: list[str], remaining: list[str], cand_idx: dict,
                    folds: np.ndarray, fit_folds: np.ndarray, n_found_before: int, max_findings: int, misfit_scaling: bool,
                    reuse_jacobian: bool, refine_steps: int, refine_jacobians: int, confirm_top: int, rule: Significance,
-                   log, readapt_after_form: bool = True, two_stage_periodic: bool = True, evidence_after_form=None) -> None:
+                   log, readapt_after_form: bool = True, two_stage_periodic: bool = True, evidence_after_form=None,
+                   form_competes: bool = True) -> None:
     """The greedy rounds (module docstring, steps 3–5), recorded in `out`: each round re-estimates the
     noise model, takes one Jacobian (w.r.t. the base, the accepted effects and every candidate) at
     the current model, refines base + accepted effects, screens and accepts the best candidate
@@ -1169,7 +1174,12 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
     significant one, then (with `readapt_after_form`) re-estimates the noise model, takes a fresh
     Jacobian and re-fits base + adjustments, and screens the effects against that base model. Stops when
     nothing is significant, no candidate is left, or `max_findings` (with the `n_found_before`
-    torque-balance findings) are reached."""
+    torque-balance findings) are reached. With `form_competes`, the model_form assumptions not
+    adopted in round 1 are screened beside the effects in every effect round: where one wins a
+    round, every significant one is adopted (they name no effect and count towards no limit) and
+    the round is screened again against the adjusted model. An assumption that a found effect's misfit hid (a sensor lag under
+    a strain-gauge ripple) is then not taken up by the effect that looks most like it (a false
+    `input_delay`, thirty-third session's viscous-variant dataset 5001)."""
     n_base = loop.n_base
     if not remaining:
         return
@@ -1178,16 +1188,21 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
     def accepted_idx() -> list[int]:  # columns of the adopted adjustments and the effects found so far
         return [j for c in out.adopted + out.chosen for j in cand_idx[c]]
 
-    def prepare(form_pool: list[str], pool: list[str]) -> None:
+    def form_left() -> list[str]:  # the model_form assumptions that compete with the effects
+        return [c for c in model_form if c not in out.adopted] if form_competes else []
+
+    def prepare(form_pool: list[str], pool: list[str], relinearise_on_stall: bool = False) -> None:
         rnd = len(out.chosen)  # one effect found per round
         active = list(range(n_base)) + accepted_idx()
         sel = active + [j for c in form_pool + pool for j in cand_idx[c]]
         log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
         proc, r_white0 = _round_noise_model(loop, misfit_scaling=misfit_scaling)
         J = loop.jacobian(loop.z, sel, reuse=reuse_jacobian and rnd > 0)
-        if rnd == 0:
+        if not state.get("noise_evidence"):
             _noise_evidence(loop, proc, r_white0, evidence, log)
-        state.update(J=_refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log), sel=sel)
+            state["noise_evidence"] = True
+        state.update(J=_refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log,
+                               relinearise_on_stall=relinearise_on_stall), sel=sel, stale=False)
 
     def screen_stage(pool: list[str], n_simulated: int) -> dict[str, dict]:
         ff = _FoldFits.at(loop, state["J"], state["sel"], fit_folds, two_stage=two_stage_periodic)
@@ -1235,24 +1250,37 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
             # and the periodic candidates' orders come from the adjusted model's residual spectra
             # (the base model's misfit hid every peak on the |ω|^0.7 bench): a Jacobian with their columns
             active = list(range(n_base)) + accepted_idx()
-            sel = active + [j for c in remaining for j in cand_idx[c]]
+            sel = active + [j for c in form_left() + remaining for j in cand_idx[c]]
             log(f"diagnose: round 1: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters (new orders)")
             state.update(J=loop.jacobian(loop.z, sel), sel=sel)
 
     # then the effects, one per round; round 1 screens them with the Jacobian it already has
     def screen(pool: list[str]) -> dict[str, dict]:
-        if out.chosen:
-            prepare([], pool)
-        return screen_stage(pool, confirm_top)
+        left = form_left()
+        if out.chosen or state.get("stale"):
+            prepare(left, pool, relinearise_on_stall=bool(state.get("stale") and DAMPED_SCREEN & set(out.adopted)))
+        return screen_stage(pool + left, confirm_top + len(left))
 
     def accept_effect(best: str, scores: dict[str, dict]) -> None:
+        if best in MODEL_FORM:
+            # an assumption won the round: every significant one adopted (round 1's rule, and one
+            # re-fit instead of one per assumption), and the round screened again
+            accept = sorted([c for c in scores if c in MODEL_FORM and scores[c]["significant"]], key=lambda c: -scores[c]["gain"])
+            out.form_items += [_form_item(loop, c, scores[c], state["raw_before"], state["raw_after_of"], len(out.rounds) - 1)
+                               for c in accept]
+            _accept(loop, state["J"], state["sel"], [j for c in accept for j in cand_idx[c]])
+            log(f"  accepted {', '.join(accept)} (model_form, in an effect round)")
+            out.adopted.extend(accept)
+            state["stale"] = True
+            return
         _accept(loop, state["J"], state["sel"], cand_idx[best])
         log(f"  accepted {best}")
         out.chosen.append(best)
         out.findings.append(_finding(loop, best, scores[best], state["raw_before"], state["raw_after_of"][best],
                                      len(out.rounds) - 1))
 
-    forward_selection(remaining, screen, accept_effect, max_findings=max_findings - n_found_before)
+    forward_selection(remaining, screen, accept_effect, max_findings=max_findings - n_found_before,
+                      counts=lambda name: name not in MODEL_FORM)
 
 
 def diagnose(
@@ -1280,6 +1308,7 @@ def diagnose(
     tb_route: bool = True,
     readapt_after_form: bool = True,
     two_stage_periodic: bool = True,
+    form_competes: bool = True,
     consistency_in: str = OUTPUT_ERROR_RULES.consistency_in,
     physical_sign: bool = OUTPUT_ERROR_RULES.physical_sign,
     log=lambda *_: None,
@@ -1308,7 +1337,9 @@ def diagnose(
     what the term does everywhere (default True; False keeps the term's Jacobian columns zeroed in
     those experiments for the whole fold fit, so nothing takes up what it does there).
     `model_form` the SPEC §4b base-model assumptions screened (and all significant ones adopted)
-    in a first round, before any effect; `per_record_noise` weighs every experiment by its own
+    in a first round, before any effect; `form_competes`: those not adopted there are screened
+    beside the effects in every later round, and one that wins is adopted instead of naming an
+    effect (default True; False screens them in round 1 only); `per_record_noise` weighs every experiment by its own
     sensor-noise level (else one level per channel); `misfit_scaling` divides the whitened residual
     of every (experiment, channel) by its RMS under the current model where that exceeds 1 (misfit
     the model cannot explain counts as noise of that record, so no record's misfit dominates the
@@ -1412,7 +1443,8 @@ def diagnose(
                    fit_folds=fit_folds, n_found_before=len(tb_found), max_findings=max_findings, misfit_scaling=misfit_scaling,
                    reuse_jacobian=reuse_jacobian, refine_steps=refine_steps, refine_jacobians=refine_jacobians,
                    confirm_top=confirm_top, rule=rule, log=log, readapt_after_form=readapt_after_form,
-                   two_stage_periodic=two_stage_periodic, evidence_after_form=evidence_after_form)
+                   two_stage_periodic=two_stage_periodic, evidence_after_form=evidence_after_form,
+                   form_competes=form_competes)
     chosen, adopted, findings, form_items, rounds, base_res = out.chosen, out.adopted, out.findings, out.form_items, out.rounds, out.base_res
 
     # stage 6: the extended model, its description, traces for the figures, what is left

@@ -121,6 +121,7 @@ def forward_selection(
     *,
     max_findings: int | None = None,
     retest: Callable[[dict], bool] = lambda score: True,
+    counts: Callable[[str], bool] = lambda name: True,
 ) -> list[dict[str, dict]]:
     """Greedy forward selection, the loop of both diagnoses.
 
@@ -130,7 +131,9 @@ def forward_selection(
     handed to `accept(name, scores)`, which adds it to the model. The next round's pool is the rest,
     less those whose score fails `retest` (the friction-only loop retests only candidates that
     gained). Stops when nothing is significant, the pool is empty or `max_findings` are named
-    (None: no limit).
+    (None: no limit). `screen` may also score names outside the pool (the output-error diagnosis's
+    unadopted model_form assumptions, which compete with the effects); one of those that wins is
+    accepted too, and it counts towards `max_findings` only where `counts(name)` is True.
 
     **Returns:** every round's scores, in order (the last round named nothing unless a limit ended
     the loop).
@@ -144,6 +147,6 @@ def forward_selection(
             break
         best = max(significant, key=lambda c: scores[c]["gain"])
         accept(best, scores)
-        named += 1
+        named += int(counts(best))
         pool = [c for c in pool if c != best and retest(scores[c])]
     return rounds
