@@ -984,8 +984,8 @@ DAMPED_SCREEN = frozenset({"viscous_friction_law"})
 #: before): log-scale shape parameters (the viscous law's exponent, the low-speed friction's
 #: scales), whose linearised per-fold steps overshoot. On viscous-variant seed 5004 (viscous law and
 #: low-speed friction adopted) 12 of 16 held-out fits went to ~10^9 × their whitened SSE when
-#: they were re-fitted per fold, with the exponent alone held as well, and every candidate was
-#: judged against that (2026-11-29, thirty-fourth session). The leak is two or three base-model
+#: they were re-fitted per fold (holding the exponent alone left that unchanged), and every
+#: candidate was judged against that (2026-11-29, thirty-fourth session). The leak is two or three base-model
 #: shape parameters, adopted on held-out evidence before; candidates with and without are judged
 #: with the same values.
 FIXED_IN_FOLDS = frozenset({"viscous_friction_law", "low_speed_friction"})
