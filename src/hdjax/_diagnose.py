@@ -1233,24 +1233,30 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
     # round 1: the base model's own assumptions first, every significant one adopted
     prepare(model_form, remaining)
 
-    def adopt_form(form_pool: list[str], simulate_all: bool = False) -> list[str]:
-        scores = screen_stage(form_pool, len(form_pool), simulate_all)
-        accept = sorted([c for c in scores if scores[c]["significant"]], key=lambda c: -scores[c]["gain"])
+    def adopt(names: list[str], scores: dict[str, dict], note: str = "") -> list[str]:
+        """Adopt every significant model_form assumption among `names` (largest gain first) at this
+        screening's figures; returns them."""
+        accept = sorted([c for c in names if scores[c]["significant"]], key=lambda c: -scores[c]["gain"])
         if accept:
             out.form_items += [_form_item(loop, c, scores[c], state["raw_before"], state["raw_after_of"], len(out.rounds) - 1)
                                for c in accept]
             _accept(loop, state["J"], state["sel"], [j for c in accept for j in cand_idx[c]])
-            log(f"  accepted {', '.join(accept)}")
+            log(f"  accepted {', '.join(accept)}{note}")
             out.adopted.extend(accept)
-            if readapt_after_form:
-                # the effects are screened against the adjusted base model: its noise model
-                # (misfit scaling) re-estimated and base + adjustments re-fitted first, or the
-                # base model's own correction to the adjustment dominates every candidate's fit
-                _round_noise_model(loop, misfit_scaling=misfit_scaling)
-                state["J"] = _refine(loop, loop.jacobian(loop.z, state["sel"]), state["sel"],
-                                     list(range(n_base)) + accepted_idx(), steps=refine_steps,
-                                     jacobians=refine_jacobians, log=log,
-                                     relinearise_on_stall=bool(DAMPED_SCREEN & set(accept)))
+        return accept
+
+    def adopt_form(form_pool: list[str], simulate_all: bool = False) -> list[str]:
+        scores = screen_stage(form_pool, len(form_pool), simulate_all)
+        accept = adopt(list(scores), scores)
+        if accept and readapt_after_form:
+            # the effects are screened against the adjusted base model: its noise model
+            # (misfit scaling) re-estimated and base + adjustments re-fitted first, or the
+            # base model's own correction to the adjustment dominates every candidate's fit
+            _round_noise_model(loop, misfit_scaling=misfit_scaling)
+            state["J"] = _refine(loop, loop.jacobian(loop.z, state["sel"]), state["sel"],
+                                 list(range(n_base)) + accepted_idx(), steps=refine_steps,
+                                 jacobians=refine_jacobians, log=log,
+                                 relinearise_on_stall=bool(DAMPED_SCREEN & set(accept)))
         return accept
 
     if model_form:
@@ -1284,12 +1290,7 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
         if best in MODEL_FORM:
             # an assumption won the round: every significant one adopted (round 1's rule, and one
             # re-fit instead of one per assumption), and the round screened again
-            accept = sorted([c for c in scores if c in MODEL_FORM and scores[c]["significant"]], key=lambda c: -scores[c]["gain"])
-            out.form_items += [_form_item(loop, c, scores[c], state["raw_before"], state["raw_after_of"], len(out.rounds) - 1)
-                               for c in accept]
-            _accept(loop, state["J"], state["sel"], [j for c in accept for j in cand_idx[c]])
-            log(f"  accepted {', '.join(accept)} (model_form, in an effect round)")
-            out.adopted.extend(accept)
+            adopt([c for c in scores if c in MODEL_FORM], scores, " (model_form, in an effect round)")
             state["stale"] = True
             return
         _accept(loop, state["J"], state["sel"], cand_idx[best])
