@@ -1174,94 +1174,133 @@ class _Outcome:
     base_res: np.ndarray | None = None
 
 
-def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: list[str], remaining: list[str], cand_idx: dict,
-                   folds: np.ndarray, fit_folds: np.ndarray, n_found_before: int, max_findings: int, misfit_scaling: bool,
-                   reuse_jacobian: bool, refine_steps: int, refine_jacobians: int, confirm_top: int, rule: Significance,
-                   log, readapt_after_form: bool = True, two_stage_periodic: bool = True, evidence_after_form=None,
-                   form_competes: bool = False) -> None:
-    """The greedy rounds (module docstring, steps 3–5), recorded in `out`: each round re-estimates the
-    noise model, takes one Jacobian (w.r.t. the base, the accepted effects and every candidate) at
-    the current model, refines base + accepted effects, screens and accepts the best candidate
-    (`hdjax._significance.forward_selection`, the friction-only diagnosis's loop too);
-    round 1 first screens the base model's own assumptions (model_form) and adopts every
-    significant one, then (with `readapt_after_form`) re-estimates the noise model, takes a fresh
-    Jacobian and re-fits base + adjustments, and screens the effects against that base model. Stops when
-    nothing is significant, no candidate is left, or `max_findings` (with the `n_found_before`
-    torque-balance findings) are reached. With `form_competes`, the model_form assumptions not
-    adopted in round 1 are screened beside the effects in every effect round: where one wins a
-    round, every significant one is adopted (they name no effect and count towards no limit) and
-    the round is screened again against the adjusted model. An assumption that a found effect's misfit hid (a sensor lag under
-    a strain-gauge ripple) is then not taken up by the effect that looks most like it (a false
-    `input_delay`, thirty-third session's viscous-variant dataset 5001)."""
-    n_base = loop.n_base
-    if not remaining:
-        return
-    state: dict = {}  # the round's Jacobian, its columns and the held-out residuals of its screening
+@dataclasses.dataclass(frozen=True)
+class _RoundOptions:
+    """How the greedy rounds run (the arguments of `diagnose` of the same names)."""
 
-    def accepted_idx() -> list[int]:  # columns of the adopted adjustments and the effects found so far
-        return [j for c in out.adopted + out.chosen for j in cand_idx[c]]
+    model_form: list[str]
+    folds: np.ndarray
+    fit_folds: np.ndarray
+    n_found_before: int
+    max_findings: int
+    misfit_scaling: bool
+    reuse_jacobian: bool
+    refine_steps: int
+    refine_jacobians: int
+    confirm_top: int
+    rule: Significance
+    readapt_after_form: bool = True
+    two_stage_periodic: bool = True
+    form_competes: bool = False
 
-    def form_left() -> list[str]:  # the model_form assumptions that compete with the effects
-        return [c for c in model_form if c not in out.adopted] if form_competes else []
 
-    def prepare(form_pool: list[str], pool: list[str], relinearise_on_stall: bool = False) -> None:
-        rnd = len(out.chosen)  # one effect found per round
-        active = list(range(n_base)) + accepted_idx()
-        sel = active + [j for c in form_pool + pool for j in cand_idx[c]]
-        log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
-        proc, r_white0 = _round_noise_model(loop, misfit_scaling=misfit_scaling)
-        J = loop.jacobian(loop.z, sel, reuse=reuse_jacobian and rnd > 0)
-        if not state.get("noise_evidence"):
-            _noise_evidence(loop, proc, r_white0, evidence, log)
-            state["noise_evidence"] = True
-        state.update(J=_refine(loop, J, sel, active, steps=refine_steps, jacobians=refine_jacobians, log=log,
-                               relinearise_on_stall=relinearise_on_stall), sel=sel, stale=False)
+class _GreedyRounds:
+    """The greedy rounds (module docstring, steps 3–5), recorded in `out`, as stages a reader can
+    follow (`run`):
 
-    def screen_stage(pool: list[str], n_simulated: int, simulate_all: bool = False) -> dict[str, dict]:
-        ff = _FoldFits.at(loop, state["J"], state["sel"], fit_folds, two_stage=two_stage_periodic)
+    1. `prepare`: each round re-estimates the noise model, takes one Jacobian (w.r.t. the base, the
+       accepted effects and every candidate) at the current model and refines base + accepted
+       effects;
+    2. `model_form_stage`: round 1 first screens the base model's own assumptions (model_form) and
+       adopts every significant one (`adopt_form`), then (with `readapt_after_form`) re-estimates the
+       noise model, takes a fresh Jacobian and re-fits base + adjustments; after a `DAMPED_SCREEN`
+       adjustment the other assumptions are screened again, each simulated, and the periodic
+       candidates take their orders from the adjusted model's residual evidence;
+    3. `screen` and `accept_effect`, one effect per round, in `hdjax._significance.forward_selection`
+       (the friction-only diagnosis's loop too): the best significant candidate is accepted.
+
+    Stops when nothing is significant, no candidate is left, or `max_findings` (with the
+    `n_found_before` torque-balance findings) are reached. With `form_competes`, the model_form
+    assumptions not adopted in round 1 are screened beside the effects in every effect round: where
+    one wins a round, every significant one is adopted (they name no effect and count towards no
+    limit) and the round is screened again against the adjusted model. An assumption that a found
+    effect's misfit hid (a sensor lag under a strain-gauge ripple) is then not taken up by the effect
+    that looks most like it (a false `input_delay`, thirty-third session's viscous-variant dataset
+    5001)."""
+
+    def __init__(self, loop: _Loop, out: _Outcome, evidence: dict, cand_idx: dict, opts: _RoundOptions, log,
+                 evidence_after_form=None):
+        self.loop, self.out, self.evidence, self.cand_idx, self.opts, self.log = loop, out, evidence, cand_idx, opts, log
+        self.evidence_after_form = evidence_after_form
+        # the round's Jacobian, its columns and the held-out residuals of its screening
+        self.J: np.ndarray = np.zeros((0, 0))  # set by `prepare`, which `run` calls first
+        self.sel: list[int] = []
+        self.raw_before = None
+        self.raw_after_of: dict = {}
+        self.stale = False  # an assumption won an effect round: the round is screened again
+        self.noise_evidence_taken = False
+
+    def accepted_idx(self) -> list[int]:
+        """Columns of the adopted adjustments and the effects found so far."""
+        return [j for c in self.out.adopted + self.out.chosen for j in self.cand_idx[c]]
+
+    def form_left(self) -> list[str]:
+        """The model_form assumptions that compete with the effects (`form_competes`)."""
+        return [c for c in self.opts.model_form if c not in self.out.adopted] if self.opts.form_competes else []
+
+    def prepare(self, form_pool: list[str], pool: list[str], relinearise_on_stall: bool = False) -> None:
+        loop, o = self.loop, self.opts
+        n_base = loop.n_base
+        rnd = len(self.out.chosen)  # one effect found per round
+        active = list(range(n_base)) + self.accepted_idx()
+        sel = active + [j for c in form_pool + pool for j in self.cand_idx[c]]
+        self.log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
+        proc, r_white0 = _round_noise_model(loop, misfit_scaling=o.misfit_scaling)
+        J = loop.jacobian(loop.z, sel, reuse=o.reuse_jacobian and rnd > 0)
+        if not self.noise_evidence_taken:
+            _noise_evidence(loop, proc, r_white0, self.evidence, self.log)
+            self.noise_evidence_taken = True
+        self.J = _refine(loop, J, sel, active, steps=o.refine_steps, jacobians=o.refine_jacobians, log=self.log,
+                         relinearise_on_stall=relinearise_on_stall)
+        self.sel, self.stale = sel, False
+
+    def screen_stage(self, pool: list[str], n_simulated: int, simulate_all: bool = False) -> dict[str, dict]:
+        loop, o, out = self.loop, self.opts, self.out
+        ff = _FoldFits.at(loop, self.J, self.sel, o.fit_folds, two_stage=o.two_stage_periodic)
         # an adopted shape adjustment (`FIXED_IN_FOLDS`) keeps its all-records value in every
         # held-out fold fit
-        fixed = {j for c in out.adopted if c in FIXED_IN_FOLDS for j in cand_idx[c]}
-        scores, raw_before, raw_after_of = _screen(loop, ff, pool, [j for j in accepted_idx() if j not in fixed], cand_idx, folds,
-                                                   n_simulated=n_simulated, rule=rule, log=log, simulate_all=simulate_all)
+        fixed = {j for c in out.adopted if c in FIXED_IN_FOLDS for j in self.cand_idx[c]}
+        scores, raw_before, raw_after_of = _screen(loop, ff, pool, [j for j in self.accepted_idx() if j not in fixed],
+                                                   self.cand_idx, o.folds, n_simulated=n_simulated, rule=o.rule,
+                                                   log=self.log, simulate_all=simulate_all)
         if out.base_res is None:
             out.base_res = raw_before
         out.rounds.append(scores)
-        state.update(raw_before=raw_before, raw_after_of=raw_after_of)
+        self.raw_before, self.raw_after_of = raw_before, raw_after_of
         return scores
 
-    # round 1: the base model's own assumptions first, every significant one adopted
-    prepare(model_form, remaining)
-
-    def adopt(names: list[str], scores: dict[str, dict], note: str = "") -> list[str]:
+    def adopt(self, names: list[str], scores: dict[str, dict], note: str = "") -> list[str]:
         """Adopt every significant model_form assumption among `names` (largest gain first) at this
         screening's figures; returns them."""
+        out = self.out
         accept = sorted([c for c in names if scores[c]["significant"]], key=lambda c: -scores[c]["gain"])
         if accept:
-            out.form_items += [_form_item(loop, c, scores[c], state["raw_before"], state["raw_after_of"], len(out.rounds) - 1)
+            out.form_items += [_form_item(self.loop, c, scores[c], self.raw_before, self.raw_after_of, len(out.rounds) - 1)
                                for c in accept]
-            _accept(loop, state["J"], state["sel"], [j for c in accept for j in cand_idx[c]])
-            log(f"  accepted {', '.join(accept)}{note}")
+            _accept(self.loop, self.J, self.sel, [j for c in accept for j in self.cand_idx[c]])
+            self.log(f"  accepted {', '.join(accept)}{note}")
             out.adopted.extend(accept)
         return accept
 
-    def adopt_form(form_pool: list[str], simulate_all: bool = False) -> list[str]:
-        scores = screen_stage(form_pool, len(form_pool), simulate_all)
-        accept = adopt(list(scores), scores)
-        if accept and readapt_after_form:
+    def adopt_form(self, form_pool: list[str], simulate_all: bool = False) -> list[str]:
+        loop, o = self.loop, self.opts
+        scores = self.screen_stage(form_pool, len(form_pool), simulate_all)
+        accept = self.adopt(list(scores), scores)
+        if accept and o.readapt_after_form:
             # the effects are screened against the adjusted base model: its noise model
             # (misfit scaling) re-estimated and base + adjustments re-fitted first, or the
             # base model's own correction to the adjustment dominates every candidate's fit
-            _round_noise_model(loop, misfit_scaling=misfit_scaling)
-            state["J"] = _refine(loop, loop.jacobian(loop.z, state["sel"]), state["sel"],
-                                 list(range(n_base)) + accepted_idx(), steps=refine_steps,
-                                 jacobians=refine_jacobians, log=log,
-                                 relinearise_on_stall=bool(DAMPED_SCREEN & set(accept)))
+            _round_noise_model(loop, misfit_scaling=o.misfit_scaling)
+            self.J = _refine(loop, loop.jacobian(loop.z, self.sel), self.sel, list(range(loop.n_base)) + self.accepted_idx(),
+                             steps=o.refine_steps, jacobians=o.refine_jacobians, log=self.log,
+                             relinearise_on_stall=bool(DAMPED_SCREEN & set(accept)))
         return accept
 
-    if model_form:
-        accept = adopt_form(model_form)
-        rest = [c for c in model_form if c not in out.adopted]
+    def model_form_stage(self, remaining: list[str]) -> None:
+        """Round 1's screening of the base model's own assumptions (stage 2 of the class docstring)."""
+        loop, out = self.loop, self.out
+        accept = self.adopt_form(self.opts.model_form)
+        rest = [c for c in self.opts.model_form if c not in out.adopted]
         if DAMPED_SCREEN & set(accept) and rest:
             # the other assumptions were judged against a base model whose misfit that adjustment
             # dominated (a linear viscous law on a |ω|^0.7 bench: free velocity 38x its noise);
@@ -1269,38 +1308,49 @@ def _greedy_rounds(loop: _Loop, out: _Outcome, evidence: dict, *, model_form: li
             # simulated held-out fit: on the small viscous-law test dataset (seed 821) the linearised
             # prediction put the sensor lags at −15 % where their simulated held-out gain was +27 %,
             # and a false input_delay took them up (2026-11-29, thirty-fourth session)
-            log("  model_form: the other assumptions screened again against the adjusted base model (all simulated)")
-            adopt_form(rest, simulate_all=True)
-        if DAMPED_SCREEN & set(out.adopted) and evidence_after_form is not None and evidence_after_form():
+            self.log("  model_form: the other assumptions screened again against the adjusted base model (all simulated)")
+            self.adopt_form(rest, simulate_all=True)
+        if DAMPED_SCREEN & set(out.adopted) and self.evidence_after_form is not None and self.evidence_after_form():
             # and the periodic candidates' orders come from the adjusted model's residual spectra
             # (the base model's misfit hid every peak on the |ω|^0.7 bench): a Jacobian with their columns
-            active = list(range(n_base)) + accepted_idx()
-            sel = active + [j for c in form_left() + remaining for j in cand_idx[c]]
-            log(f"diagnose: round 1: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters (new orders)")
-            state.update(J=loop.jacobian(loop.z, sel), sel=sel)
+            n_base = loop.n_base
+            active = list(range(n_base)) + self.accepted_idx()
+            sel = active + [j for c in self.form_left() + remaining for j in self.cand_idx[c]]
+            self.log(f"diagnose: round 1: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters (new orders)")
+            self.J, self.sel = loop.jacobian(loop.z, sel), sel
 
-    # then the effects, one per round; round 1 screens them with the Jacobian it already has
-    def screen(pool: list[str]) -> dict[str, dict]:
-        left = form_left()
-        if out.chosen or state.get("stale"):
-            prepare(left, pool, relinearise_on_stall=bool(state.get("stale") and DAMPED_SCREEN & set(out.adopted)))
-        return screen_stage(pool + left, confirm_top + len(left))
+    def screen(self, pool: list[str]) -> dict[str, dict]:
+        """One effect round's screening; round 1 screens with the Jacobian it already has."""
+        left = self.form_left()
+        if self.out.chosen or self.stale:
+            self.prepare(left, pool, relinearise_on_stall=bool(self.stale and DAMPED_SCREEN & set(self.out.adopted)))
+        return self.screen_stage(pool + left, self.opts.confirm_top + len(left))
 
-    def accept_effect(best: str, scores: dict[str, dict]) -> None:
+    def accept_effect(self, best: str, scores: dict[str, dict]) -> None:
         if best in MODEL_FORM:
             # an assumption won the round: every significant one adopted (round 1's rule, and one
             # re-fit instead of one per assumption), and the round screened again
-            adopt([c for c in scores if c in MODEL_FORM], scores, " (model_form, in an effect round)")
-            state["stale"] = True
+            self.adopt([c for c in scores if c in MODEL_FORM], scores, " (model_form, in an effect round)")
+            self.stale = True
             return
-        _accept(loop, state["J"], state["sel"], cand_idx[best])
-        log(f"  accepted {best}")
+        out = self.out
+        _accept(self.loop, self.J, self.sel, self.cand_idx[best])
+        self.log(f"  accepted {best}")
         out.chosen.append(best)
-        out.findings.append(_finding(loop, best, scores[best], state["raw_before"], state["raw_after_of"][best],
+        out.findings.append(_finding(self.loop, best, scores[best], self.raw_before, self.raw_after_of[best],
                                      len(out.rounds) - 1))
 
-    forward_selection(remaining, screen, accept_effect, max_findings=max_findings - n_found_before,
-                      counts=lambda name: name not in MODEL_FORM)
+    def run(self, remaining: list[str]) -> None:
+        if not remaining:
+            return
+        # round 1: the base model's own assumptions first, every significant one adopted
+        self.prepare(self.opts.model_form, remaining)
+        if self.opts.model_form:
+            self.model_form_stage(remaining)
+        # then the effects, one per round
+        forward_selection(remaining, self.screen, self.accept_effect,
+                          max_findings=self.opts.max_findings - self.opts.n_found_before,
+                          counts=lambda name: name not in MODEL_FORM)
 
 
 def diagnose(
@@ -1461,12 +1511,12 @@ def diagnose(
 
     # stage 5: greedy rounds
     out = _Outcome(findings=tb_findings)
-    _greedy_rounds(loop, out, evidence, model_form=model_form, remaining=remaining, cand_idx=cand_idx, folds=folds,
-                   fit_folds=fit_folds, n_found_before=len(tb_found), max_findings=max_findings, misfit_scaling=misfit_scaling,
-                   reuse_jacobian=reuse_jacobian, refine_steps=refine_steps, refine_jacobians=refine_jacobians,
-                   confirm_top=confirm_top, rule=rule, log=log, readapt_after_form=readapt_after_form,
-                   two_stage_periodic=two_stage_periodic, evidence_after_form=evidence_after_form,
-                   form_competes=form_competes)
+    opts = _RoundOptions(model_form=model_form, folds=folds, fit_folds=fit_folds, n_found_before=len(tb_found),
+                         max_findings=max_findings, misfit_scaling=misfit_scaling, reuse_jacobian=reuse_jacobian,
+                         refine_steps=refine_steps, refine_jacobians=refine_jacobians, confirm_top=confirm_top, rule=rule,
+                         readapt_after_form=readapt_after_form, two_stage_periodic=two_stage_periodic,
+                         form_competes=form_competes)
+    _GreedyRounds(loop, out, evidence, cand_idx, opts, log, evidence_after_form=evidence_after_form).run(remaining)
     chosen, adopted, findings, form_items, rounds, base_res = out.chosen, out.adopted, out.findings, out.form_items, out.rounds, out.base_res
 
     # stage 6: the extended model, its description, traces for the figures, what is left
