@@ -3,7 +3,7 @@
 import numpy as np
 
 from hdjax import Significance
-from hdjax._diagnose import _drift_share, _FoldFits, _judge, _solve_normal
+from hdjax._diagnose import _drift_share, _FoldFits, _judge, _solve_normal, near_misses
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -305,3 +305,35 @@ def test_an_effect_fitted_with_the_sign_its_physics_forbids_is_not_that_effect()
     assert set(PHYSICAL_SIGN) == {"thermal_drift", "load_dependent_friction", "nonlinear_stiffness",
                                   "rate_independent_hysteresis", "input_delay"}
     assert Significance().physical_sign and not Significance(physical_sign=False).physical_sign
+
+
+def test_a_refused_candidate_that_gains_is_reported_with_the_rule_that_refused_it():
+    """The pattern of the thermal drift on full-size bench dataset 907 (2026-12-01): the free tests
+    gain, most of it in the one record early in the session, and only 2 of the 4 free records
+    improve. It is refused (consistency) and `near_misses` says so, naming that record and the
+    rule's threshold; a named candidate, a model_form item and a predicted-only one are not listed,
+    and each refusal the judge reports is a rule that fails on its own."""
+    gains = [0.0, 0.0, 0.0, 0.0, 0.18, 0.05, -0.01, -0.01]
+    before, after = _residuals(gains)
+    rule = Significance()
+    s = dict(_judge(before, after, FOLDS, MODES, 1, rule), k=1)
+    assert not s["significant"] and "consistency" in s["refused_by"]
+    assert s["best_experiment"] == 4 and s["improved_count"] == 2 and s["mode_count"] == 4
+    # the same candidate judged with a looser consistency rule is refused by nothing else
+    loose = _judge(before, after, FOLDS, MODES, 1, Significance(min_improved_fraction=0.5, min_gain_without_best=-1.0))
+    assert loose["significant"] and loose["refused_by"] == []
+    named = dict(_judge(*_residuals([0.2, 0.25, 0.15, 0.2, 0.0, 0.0, 0.0, 0.0]), FOLDS, MODES, 2, rule), k=2)
+    assert named["significant"]
+    scores = {"thermal_drift": s, "cogging": named,
+              "sensor_offset": dict(s),  # a model_form item: not an effect left unexplained
+              "lost_motion": {"simulated": False, "significant": False, "gain": 0.2, "predicted_gain": 0.2}}
+    labels = [f"locked_{i}.csv" for i in range(4)] + [f"free_{i}.csv" for i in range(4)]
+    items = near_misses(scores, rule, MODES, labels, {})
+    assert [i["description"].split()[0] for i in items] == ["thermal_drift"]
+    text = items[0]["evidence"]
+    assert "only 2 of the 4 free tests improve" in text and "free_0.csv" in text and "75 %" in text
+    assert "More records where it acts would settle it" in text
+    # a gain under NEAR_MISS_GAIN is not listed
+    small_before, small_after = _residuals([0.0, 0.0, 0.0, 0.0, 0.02, -0.01, 0.0, -0.01])
+    small = dict(_judge(small_before, small_after, FOLDS, MODES, 1, rule), k=1)
+    assert small["gain"] < 0.01 and not near_misses({"thermal_drift": small}, rule, MODES, labels, {})

@@ -30,7 +30,7 @@ DEFAULTS = {
 }
 
 
-def _run_diagnose(paper, dataset, exps, opts, log):
+def _run_diagnose(paper, dataset, exps, files, opts, log):
     return diagnose(
         paper.parameters(), dataset.drive, exps,
         candidates=opts["candidates"],
@@ -43,6 +43,7 @@ def _run_diagnose(paper, dataset, exps, opts, log):
         max_findings=int(opts["max_findings"]),
         min_relative_gain=float(opts["min_relative_gain"]),
         simulator=Simulator(rtol=float(opts["rtol"]), atol=1e-8),
+        labels=files,
         log=log,
     )
 
@@ -114,7 +115,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     paper = identify_paper(exps, drive, alpha=fit_opts["alpha"], Tss2=fit_opts["Tss2"], cutoff_hz=fit_opts["cutoff_hz"])
     log("[2/3] discrepancy loop (base fit, residual evidence, cross-validated candidates)")
     with DiagnosisProgress(log, opts) as watch:
-        d = _run_diagnose(paper, dataset, exps, opts, watch)
+        d = _run_diagnose(paper, dataset, exps, files, opts, watch)
     drifts = covariate_drifts(paper.per_experiment, exps)
     d.evidence["per_experiment_drifts"] = drifts
     log("[3/3] report and figures")
