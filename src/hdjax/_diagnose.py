@@ -1512,6 +1512,9 @@ def diagnose(
     timing = {}
     t0 = time.perf_counter()
     candidates, model_form = _check_names(candidates, model_form, cross_validation)
+    if labels is not None and len(labels) != len(experiments):
+        raise ValueError(f"`diagnose`: `labels` names {len(labels)} experiments, but {len(experiments)} were given; "
+                         "pass one name per experiment (its file), or none.")
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
                                min_improved_fraction=min_improved_fraction, consistency_in=consistency_in,
