@@ -311,8 +311,9 @@ def test_a_refused_candidate_that_gains_is_reported_with_the_rule_that_refused_i
     """The pattern of the thermal drift on full-size bench dataset 907 (2026-12-01): the free tests
     gain, most of it in the one record early in the session, and only 2 of the 4 free records
     improve. It is refused (consistency) and `near_misses` says so, naming that record and the
-    rule's threshold; a named candidate, a model_form item and a predicted-only one are not listed,
-    and each refusal the judge reports is a rule that fails on its own."""
+    rule's threshold; a predicted-only candidate is listed as a linearised prediction; a named
+    candidate and a model_form item are not listed, and each refusal the judge reports is a rule
+    that fails on its own."""
     gains = [0.0, 0.0, 0.0, 0.0, 0.18, 0.05, -0.01, -0.01]
     before, after = _residuals(gains)
     rule = Significance()
@@ -329,7 +330,10 @@ def test_a_refused_candidate_that_gains_is_reported_with_the_rule_that_refused_i
               "lost_motion": {"simulated": False, "significant": False, "gain": 0.2, "predicted_gain": 0.2}}
     labels = [f"locked_{i}.csv" for i in range(4)] + [f"free_{i}.csv" for i in range(4)]
     items = near_misses(scores, rule, MODES, labels, {})
-    assert [i["description"].split()[0] for i in items] == ["thermal_drift"]
+    # largest gain first: the predicted-only lost_motion (+20 %, linearised) before the simulated drift
+    assert [i["description"].split()[0] for i in items] == ["lost_motion", "thermal_drift"]
+    assert "predicted" in items[0]["description"] and "not simulated" in items[0]["evidence"]
+    items = items[1:]
     text = items[0]["evidence"]
     assert "only 2 of the 4 free tests improve" in text and "free_0.csv" in text and "75 %" in text
     assert "More records where it acts would settle it" in text
