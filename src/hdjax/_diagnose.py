@@ -90,8 +90,8 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    loop repeats (up to `max_findings`).
 6. What is left: residual order-spectrum peaks and channels far above their sensor noise under the
    final model are listed as `unexplained`, and so are the near misses (`near_misses`): effects of
-   the last round whose simulated held-out fits gain but that a rule refused, with the rule, its
-   figures and the record that gains most.
+   the last round whose held-out fits gain (simulated, or by the linearised prediction where not
+   simulated) but that a rule refused, with the rule, its figures and the record that gains most.
 
 A periodic term's Jacobian columns are zeroed in experiments where its order completes no cycle
 of θm (locked tests): over a fraction of a cycle it is a smooth function of θm that absorbs other
