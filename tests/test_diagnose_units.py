@@ -329,7 +329,7 @@ def test_a_refused_candidate_that_gains_is_reported_with_the_rule_that_refused_i
               "sensor_offset": dict(s),  # a model_form item: not an effect left unexplained
               "lost_motion": {"simulated": False, "significant": False, "gain": 0.2, "predicted_gain": 0.2}}
     labels = [f"locked_{i}.csv" for i in range(4)] + [f"free_{i}.csv" for i in range(4)]
-    items = near_misses(scores, rule, MODES, labels, {})
+    items = near_misses(scores, rule, labels, {})
     # largest gain first: the predicted-only lost_motion (+20 %, linearised) before the simulated drift
     assert [i["description"].split()[0] for i in items] == ["lost_motion", "thermal_drift"]
     assert "predicted" in items[0]["description"] and "not simulated" in items[0]["evidence"]
@@ -340,4 +340,4 @@ def test_a_refused_candidate_that_gains_is_reported_with_the_rule_that_refused_i
     # a gain under NEAR_MISS_GAIN is not listed
     small_before, small_after = _residuals([0.0, 0.0, 0.0, 0.0, 0.02, -0.01, 0.0, -0.01])
     small = dict(_judge(small_before, small_after, FOLDS, MODES, 1, rule), k=1)
-    assert small["gain"] < 0.01 and not near_misses({"thermal_drift": small}, rule, MODES, labels, {})
+    assert small["gain"] < 0.01 and not near_misses({"thermal_drift": small}, rule, labels, {})

@@ -893,16 +893,17 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     d_m, e_m = d[in_mode], e_before[in_mode]
     best = int(np.argmax(d_m))
     gain_rest = float((np.sum(d_m) - d_m[best]) / (np.sum(e_m) - e_m[best])) if d_m.size > 1 else None
-    large = ((max(mode_gains.values()) > rule.min_relative_gain
-              and (gain_rest is None or gain_rest > rule.min_gain_without_best))
-             or rule.drift_is_large(drift_share))
+    drift_large = rule.drift_is_large(drift_share)
+    sized = max(mode_gains.values()) > rule.min_relative_gain
+    sized_without_best = gain_rest is None or gain_rest > rule.min_gain_without_best
     # and no record contradicts it (`MAX_RECORD_LOSS`)
     rel = d / e_before
     worst = int(np.argmin(rel))
     contradicted = rule.contradicted(float(-d[worst]), float(-rel[worst]), k)
     refused_by = [name for name, ok in (
         ("folds", bool(np.all(sse_after < sse_before))),
-        ("effect_size", large),
+        ("effect_size", sized or drift_large),
+        ("effect_size_without_best", not sized or sized_without_best or drift_large),
         ("chance", dchi > chance),
         ("chance_without_best", dchi_rest > chance),
         ("mode_trade", min(mode_dchi.values()) > -max(chance, rule.mode_trade * max(mode_dchi.values()))),
@@ -1034,7 +1035,7 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
         if drift is not None:
             s["between_record_share"] = drift
         if simulate_all or (len(raw_after_of) < n_simulated
-                            and (predicted[c] > 0.5 * rule.min_relative_gain or rule.drift_is_large(drift))):
+                            and (predicted[c] > SIMULATED_FROM * rule.min_relative_gain or rule.drift_is_large(drift))):
             zs_c = steps[c][0]
             if c in DAMPED_SCREEN:
                 s["step_fraction"] = frac = _in_sample_step_fraction(loop, ff, chosen_idx, cand_idx[c])
@@ -1069,24 +1070,24 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
     return scores, raw_before, raw_after_of
 
 
-def _refusal(c: str, s: dict, rule: Significance, modes: np.ndarray, labels: list[str]) -> str:
+def _refusal(c: str, s: dict, rule: Significance, labels: list[str]) -> str:
     """Why the simulated candidate `c` with scores `s` (`_judge`) was not named, rule by rule, with
     its figures and the thresholds of `rule`; `labels` name the experiments."""
     md = s["acting_mode"]
     kind = {"constrained": "locked", "free": "free"}[md]
     best = s["best_experiment"]
     gain_best = 100 * s["per_experiment_gain"][best]
+    drift = (f"; as a drift, its between-record share is {s['between_record_share']:.2f} (rule {rule.min_drift_share:g})"
+             if "between_record_share" in s else "")
     why = {
-        "folds": lambda: "one half of the held-out experiments gets worse (halves "
+        "folds": lambda: "one half of the held-out experiments does not improve (halves "
                          + " / ".join(f"{100 * g:+.1f} %" for g in s["fold_gains"]) + ")",
-        "effect_size": lambda: (
-            f"its gain on the {kind} tests, {100 * s['mode_gains'][md]:+.1f} %, "
-            + (f"is below the effect size of {100 * rule.min_relative_gain:g} %"
-               if s["mode_gains"][md] <= rule.min_relative_gain else
-               f"falls to {100 * (s['acting_mode_gain_without_best'] or 0.0):+.1f} % without {labels[best]} "
-               f"({gain_best:+.0f} % there; rule {100 * rule.min_gain_without_best:g} %)")
-            + (f"; as a drift, its between-record share is {s['between_record_share']:.2f} "
-               f"(rule {rule.min_drift_share:g})" if "between_record_share" in s else "")),
+        "effect_size": lambda: (f"its largest gain on one kind of test, {100 * max(s['mode_gains'].values()):+.1f} %, "
+                                f"is below the effect size of {100 * rule.min_relative_gain:g} %" + drift),
+        "effect_size_without_best": lambda: (
+            f"its gain on the {kind} tests, {100 * s['mode_gains'][md]:+.1f} %, falls to "
+            f"{100 * (s['acting_mode_gain_without_best'] or 0.0):+.1f} % without {labels[best]} ({gain_best:+.0f} % there; "
+            f"rule {100 * rule.min_gain_without_best:g} %)" + drift),
         "chance": lambda: f"its held-out Δχ² {s['delta_chi2']:.0f} is within the chance level {s['chance']:.0f}",
         "chance_without_best": lambda: (f"without {labels[best]} ({gain_best:+.0f} % there) its held-out Δχ² "
                                         f"{s['delta_chi2_without_best_experiment']:.0f} is within the chance level "
@@ -1103,13 +1104,18 @@ def _refusal(c: str, s: dict, rule: Significance, modes: np.ndarray, labels: lis
     return "; ".join(why[r]() for r in s["refused_by"])
 
 
+#: A candidate is simulated (among the best `confirm_top` of its round) from this share of
+#: `Significance.min_relative_gain` of predicted held-out gain.
+SIMULATED_FROM = 0.5
+
+
 #: A near miss (reported in `unexplained`, never a finding): a candidate of the last round whose
 #: held-out fits gain (simulated, or linearised where it was not simulated) at least this share of
 #: the held-out error, named by no rule.
 NEAR_MISS_GAIN = 0.01
 
 
-def near_misses(scores: dict[str, dict], rule: Significance, modes: np.ndarray, labels: list[str], orders_of: dict) -> list[dict]:
+def near_misses(scores: dict[str, dict], rule: Significance, labels: list[str], orders_of: dict) -> list[dict]:
     """`unexplained` entries for the effects of the last screening round (`scores`, which named
     nothing) whose held-out fits gain at least `NEAR_MISS_GAIN` but that a rule refused, largest
     gain first: what each would explain, and why it is not named (`_refusal`; a candidate that
@@ -1124,15 +1130,14 @@ def near_misses(scores: dict[str, dict], rule: Significance, modes: np.ndarray, 
             # predicted only: its linearised held-out gain stayed under what is simulated
             out.append({"description": f"{c}{orders} is predicted to gain {100 * s['gain']:+.1f} % held out but is not named",
                         "evidence": "a linearised prediction of its held-out fits, not simulated (a round simulates the "
-                                    f"best few candidates predicted above {100 * 0.5 * rule.min_relative_gain:g} %); an effect "
+                                    f"best few candidates predicted above {100 * SIMULATED_FROM * rule.min_relative_gain:g} %); an effect "
                                     "this small, if real, needs more or longer records where it acts"})
             continue
         # resting on too few records (not a sign or a trade between the kinds of test): more would settle it
-        few = {"consistency", "chance_without_best"} & set(s["refused_by"]) or (
-            "effect_size" in s["refused_by"] and s["mode_gains"][s["acting_mode"]] > rule.min_relative_gain)
+        few = bool({"consistency", "chance_without_best", "effect_size_without_best"} & set(s["refused_by"]))
         out.append({"description": f"{c}{orders} gains {100 * s['gain']:+.1f} % held out but is not named",
                     "evidence": "simulated held-out fits (halves " + " / ".join(f"{100 * g:+.1f} %" for g in s["fold_gains"])
-                                + f"); not named because {_refusal(c, s, rule, modes, labels)}"
+                                + f"); not named because {_refusal(c, s, rule, labels)}"
                                 + ((". More records where it acts would settle it" + (
                                     " (for a drift over the session: tests recorded early, while it lasts)"
                                     if c in DRIFT_EFFECTS else "")) if few else "")})
@@ -1320,12 +1325,16 @@ class _GreedyRounds:
         """The model_form assumptions that compete with the effects (`form_competes`)."""
         return [c for c in self.opts.model_form if c not in self.out.adopted] if self.opts.form_competes else []
 
+    def columns(self, pool: list[str]) -> tuple[list[int], list[int]]:
+        """(active, sel): the base and accepted columns, and those plus the columns of `pool`."""
+        active = list(range(self.loop.n_base)) + self.accepted_idx()
+        return active, active + [j for c in pool for j in self.cand_idx[c]]
+
     def prepare(self, form_pool: list[str], pool: list[str], relinearise_on_stall: bool = False) -> None:
         loop, o = self.loop, self.opts
         n_base = loop.n_base
         rnd = len(self.out.chosen)  # one effect found per round
-        active = list(range(n_base)) + self.accepted_idx()
-        sel = active + [j for c in form_pool + pool for j in self.cand_idx[c]]
+        active, sel = self.columns(form_pool + pool)
         self.log(f"diagnose: round {rnd + 1}: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters")
         proc, r_white0 = _round_noise_model(loop, misfit_scaling=o.misfit_scaling)
         J = loop.jacobian(loop.z, sel, reuse=o.reuse_jacobian and rnd > 0)
@@ -1396,8 +1405,7 @@ class _GreedyRounds:
             # and the periodic candidates' orders come from the adjusted model's residual spectra
             # (the base model's misfit hid every peak on the |ω|^0.7 bench): a Jacobian with their columns
             n_base = loop.n_base
-            active = list(range(n_base)) + self.accepted_idx()
-            sel = active + [j for c in self.form_left() + remaining for j in self.cand_idx[c]]
+            _, sel = self.columns(self.form_left() + remaining)
             self.log(f"diagnose: round 1: Jacobian w.r.t. {n_base} base + {len(sel) - n_base} effect parameters (new orders)")
             self.J, self.sel = loop.jacobian(loop.z, sel), sel
 
@@ -1628,7 +1636,7 @@ def diagnose(
     left = unexplained(batch, tr1, m, modes, sigma, loop.r_raw, loop.r, named_at)
     if rounds and not any(sc["significant"] for sc in rounds[-1].values()):
         names = list(labels) if labels is not None else [f"experiment {i}" for i in range(len(experiments))]
-        left += near_misses(rounds[-1], rule, modes, names, orders_of)
+        left += near_misses(rounds[-1], rule, names, orders_of)
     timing["total"] = time.perf_counter() - t0
     base_n = loop.nrmse(base_res) if base_res is not None else {}
     return Diagnosis(findings=findings, model_form=form_items, unexplained=left, baseline={"heldout_nrmse": base_n},
