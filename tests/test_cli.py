@@ -199,6 +199,24 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
         trajectory_simulator({**opts, "solver": "euler"})
     with pytest.raises(ValueError, match=r"fit\.trajectory\.substeps"):
         trajectory_simulator({**opts, "solver": "velocity_implicit", "substeps": 0})
+    with pytest.raises(ValueError, match=r"fit\.trajectory\.rtol.*\(0, 0\.1\]"):
+        trajectory_simulator({**opts, "rtol": 0.0})
+
+
+def test_per_experiment_fits_run_at_their_own_tolerance():
+    """The per-experiment fits use the joint fit's numerics at `fit.trajectory.per_experiment_rtol`
+    (a decade looser by default); a tolerance that is not a number in (0, 0.1] names its key."""
+    from hdjax._identify import DEFAULTS, per_experiment_simulator, trajectory_simulator
+
+    opts = dict(DEFAULTS["trajectory"])
+    assert opts["per_experiment_rtol"] == 10 * opts["rtol"]
+    sim, joint = per_experiment_simulator(opts), trajectory_simulator(opts)
+    assert sim.rtol == opts["per_experiment_rtol"] and sim.atol == opts["per_experiment_rtol"] * 1e-2
+    assert type(sim.solver) is type(joint.solver) and joint.rtol == opts["rtol"]
+    assert per_experiment_simulator({**opts, "per_experiment_rtol": "3e-4"}).rtol == 3e-4  # YAML's reading of 3e-4
+    for bad in (-1e-4, 0.5, "fast", True, None):
+        with pytest.raises(ValueError, match=r"fit\.trajectory\.per_experiment_rtol"):
+            per_experiment_simulator({**opts, "per_experiment_rtol": bad})
 
 
 def test_read_target_turns_dataset_warnings_into_notes(tmp_path):
