@@ -341,3 +341,27 @@ def test_a_refused_candidate_that_gains_is_reported_with_the_rule_that_refused_i
     small_before, small_after = _residuals([0.0, 0.0, 0.0, 0.0, 0.02, -0.01, 0.0, -0.01])
     small = dict(_judge(small_before, small_after, FOLDS, MODES, 1, rule), k=1)
     assert small["gain"] < 0.01 and not near_misses({"thermal_drift": small}, rule, labels, {})
+
+
+def test_every_reported_parameter_and_adjustment_has_a_unit():
+    """A finding's parameters and a model_form item's adjustment carry units (diagnosis.json's
+    `parameter_units`, `adjustment_units`), and the report prints them: a user reads
+    `b2 = 1.8 N·m, phi2 = 1.25 rad`, not bare numbers."""
+    from hdjax._diagnose import _describe, parameter_units
+    from hdjax._diagnose_report import _with_units
+    from hdjax._effects import EFFECT_NAMES, FIELD_UNITS, MODEL_FORM, PERIODIC, SCALAR, Effects
+
+    assert set(FIELD_UNITS) == {f for fields in (*SCALAR.values(), *MODEL_FORM.values()) for f in fields}
+    effects = Effects().with_periodic("torque_sensor_ripple", 2, 1.8, 1.25).with_periodic("kinematic_error", 3, 2e-5)
+    for name in EFFECT_NAMES:
+        params, _ = _describe(effects, name, [2, 3] if name in PERIODIC else ())
+        units = parameter_units(name, params)
+        assert set(units) == set(params) and all(units.values()), name
+    params, orders = _describe(effects, "torque_sensor_ripple", [2])
+    assert orders == [2] and parameter_units("torque_sensor_ripple", params) == {"b2": "N·m", "phi2": "rad"}
+    assert parameter_units("kinematic_error", _describe(effects, "kinematic_error", [3])[0])["a3"] == "rad"
+    assert parameter_units("nonlinear_stiffness", {"K3": 1e5}) == {"K3": "N·m/rad³"}
+    text = _with_units(params, parameter_units("torque_sensor_ripple", params))
+    assert text == "b2 = 1.8 N·m, phi2 = 1.25 rad"
+    # dimensionless values print bare
+    assert _with_units({"mu": 0.02, "delay": 5e-4}, {"mu": "-", "delay": "s"}) == "mu = 0.02, delay = 0.0005 s"

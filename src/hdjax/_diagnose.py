@@ -123,7 +123,17 @@ from jaxtyping import Bool, Float
 from scipy import stats
 from scipy.signal import lfilter
 
-from ._effects import EFFECT_NAMES, MAX_ORDER, MODEL_FORM, MODEL_FORM_NAMES, PERIODIC, SCALAR, Effects
+from ._effects import (
+    EFFECT_NAMES,
+    FIELD_UNITS,
+    MAX_ORDER,
+    MODEL_FORM,
+    MODEL_FORM_NAMES,
+    PERIODIC,
+    PERIODIC_UNITS,
+    SCALAR,
+    Effects,
+)
 from ._evidence import (
     TB_MIN_GAIN,
     TB_RIPPLE_RATIO,
@@ -1188,9 +1198,11 @@ def _describe_items(findings: list[dict], form_items: list[dict], final_effects:
     """Complete the findings and model_form items with their fitted values, orders and evidence text."""
     for f in form_items:
         f["adjustment"] = {k: float(getattr(final_effects, k)) for k in MODEL_FORM[f["assumption"]]}
+        f["adjustment_units"] = {k: FIELD_UNITS[k] for k in f["adjustment"]}
         f["evidence"] = _evidence_text(f["assumption"], evidence, rounds[f.pop("_round")], f)
     for f in findings:
         f["parameters"], f["orders"] = _describe(final_effects, f["effect"], orders_of.get(f["effect"], ()))
+        f["parameter_units"] = parameter_units(f["effect"], f["parameters"])
         rnd = f.pop("_round")
         tb = f.pop("_tb", None)
         if tb is None:
@@ -1658,6 +1670,14 @@ def _describe(effects: Effects, name: str, orders):
         return params, orders
     params = {f: float(getattr(effects, f)) for f in SCALAR[name]}
     return params, None
+
+
+def parameter_units(name: str, parameters: dict) -> dict[str, str]:
+    """The unit of each reported parameter of effect `name` (`_describe`'s keys): a periodic
+    effect's amplitudes in `PERIODIC_UNITS`, its phases `phi<k>` in rad; scalars in `FIELD_UNITS`."""
+    if name in PERIODIC:
+        return {k: "rad" if k.startswith("phi") else PERIODIC_UNITS[name] for k in parameters}
+    return {k: FIELD_UNITS[k] for k in parameters}
 
 
 def _evidence_text(name, evidence, round_scores, finding) -> str:

@@ -76,6 +76,17 @@ MODEL_FORM = {
     "viscous_friction_law": ("viscous_exponent", "viscous_reference"),
 }
 MODEL_FORM_NAMES = tuple(MODEL_FORM)
+#: Units of the amplitude of each periodic effect (its phases are in rad).
+PERIODIC_UNITS = {"kinematic_error": "rad", "torque_sensor_ripple": "N·m", "cogging": "N·m",
+                  "position_dependent_friction": "-"}
+#: Units of every scalar field of `SCALAR` and `MODEL_FORM` ("-": dimensionless; the `*_scale`
+#: fields and `viscous_exponent` are natural logarithms of a factor).
+FIELD_UNITS = {
+    "K3": "N·m/rad³", "backlash": "rad", "mu": "-", "beta": "-", "tau": "s", "delay": "s", "Th": "N·m",
+    "sigma": "rad", "presliding": "-", "presliding_scale": "-", "friction_scale": "-", "stribeck_scale": "-",
+    "torque_offset": "N·m", "velocity_offset": "rad/s", "current_offset": "A", "torque_lag": "s",
+    "velocity_lag": "s", "reconstruction": "-", "viscous_exponent": "-", "viscous_reference": "rad/s",
+}  # fmt: skip
 #: The scalar fields of every non-periodic term, effects and model_form alike.
 SCALAR_FIELDS = {**SCALAR, **MODEL_FORM}
 

@@ -15,7 +15,7 @@ from jaxtyping import Float
 from scipy import stats
 
 from ._effects import MAX_ORDER, PERIODIC
-from ._experiment import Experiment
+from ._experiment import CHANNEL_UNITS, Experiment
 from ._model import Drive, Parameters, friction_torque
 
 
@@ -277,8 +277,9 @@ def unexplained(batch, traj, m, modes, sigma, r_meas, r_white, named_at: dict[in
                    "wave-generator angle drifts from the true one in free motion)")
         else:
             why = "no candidate effect at this order gave a significant held-out gain"
+        unit = CHANNEL_UNITS[where.split("/")[1]]
         out.append({"description": f"{where.replace('/', ' ')} residual periodic at order {k} per wave-generator turn",
-                    "evidence": f"order-{k} amplitude {a_si:.3g} (SI units; {a:.3g} of the per-record residual RMS against a "
+                    "evidence": f"order-{k} amplitude {a_si:.3g} {unit} ({a:.3g} of the per-record residual RMS against a "
                                 f"detection threshold of {thr:.3g}); {why}"})
     for md in ("constrained", "free"):
         sel = modes == md

@@ -13,6 +13,8 @@ from jaxtyping import Array, Bool, Float
 
 MODES = ("constrained", "free", "friction")
 CONSTRAINED, FREE, FRICTION = 0, 1, 2
+#: Units of the simulated and measured channels of a dynamic experiment.
+CHANNEL_UNITS = {"torque": "N·m", "motor_velocity": "rad/s", "output_position": "rad"}
 
 
 class Experiment(eqx.Module):

@@ -16,12 +16,12 @@ from matplotlib.colors import LogNorm  # noqa: E402
 
 from ._effects import MAX_ORDER
 from ._evidence import TB_MAX_RATIO, TB_MEDIAN_RATIO
-from ._experiment import stack_experiments
+from ._experiment import CHANNEL_UNITS, stack_experiments
 from ._fit import CHANNELS
 from ._identify import hysteresis_curves
 from ._io import atomic_savefig
 from ._model import Parameters
-from ._sensitivity import ABLATIONS, CHANNEL_SYMBOL, CHANNEL_UNITS
+from ._sensitivity import ABLATIONS, CHANNEL_SYMBOL
 from ._tune import CONTROLLERS, LABELS
 
 

@@ -52,7 +52,6 @@ __all__ = [
     "weighted_jacobians",
 ]
 
-CHANNEL_UNITS = {"torque": "N·m", "motor_velocity": "rad/s", "output_position": "rad"}
 CHANNEL_SYMBOL = {"torque": "T", "motor_velocity": "ω_m", "output_position": "θ_o"}
 #: the parameters the fit (and the paper) estimate; alpha and Tss2 are fixed there
 ESTIMATED = tuple(DEFAULT_FREE)

@@ -14,14 +14,13 @@ import numpy as np
 from ._artifacts import fit_json_dataset, read_fit_json
 from ._config import section_options
 from ._data import Dataset
-from ._experiment import select_experiments, stack_experiments
+from ._experiment import CHANNEL_UNITS, select_experiments, stack_experiments
 from ._fit import CHANNELS, noise_levels
 from ._io import atomic_write_json, atomic_write_text
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS
 from ._plant import Simulator
 from ._sensitivity import (
     AGREE_FACTOR,
-    CHANNEL_UNITS,
     ESTIMATED,
     ablation_study,
     compare_consistency,
