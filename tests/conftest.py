@@ -24,6 +24,10 @@ import importlib.util
 import os
 import pkgutil
 
+# the commands keep compiled programs in a persistent cache (`hdjax.use_compilation_cache`); the
+# commands that tests run in-process or in a subprocess do not write to the user's cache folder
+os.environ.setdefault("HDJAX_COMPILATION_CACHE", "off")
+
 import jaxtyping
 
 #: hdjax modules the runtime type checker leaves out, and why (see the module docstring).

@@ -123,3 +123,18 @@ def test_use_host_devices_sets_the_count_before_jax_starts_and_import_starts_not
     out = subprocess.run([sys.executable, "-c", script], env=_cpu_env(), capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.split() == ["False", "3", "None", "3"], out.stdout
+
+
+def test_the_compilation_cache_folder_follows_the_environment(tmp_path):
+    """`HDJAX_COMPILATION_CACHE` names the commands' cache folder or switches it off; else it is
+    `$XDG_CACHE_HOME/hdjax/xla`, else `~/.cache/hdjax/xla`."""
+    import pathlib
+
+    from hdjax import COMPILATION_CACHE_ENV, compilation_cache_dir
+
+    assert compilation_cache_dir({COMPILATION_CACHE_ENV: str(tmp_path)}) == tmp_path
+    for off in ("off", "0", "OFF", "none"):
+        assert compilation_cache_dir({COMPILATION_CACHE_ENV: off}) is None
+    assert compilation_cache_dir({"XDG_CACHE_HOME": "/x/cache"}) == pathlib.Path("/x/cache/hdjax/xla")
+    assert compilation_cache_dir({}) == pathlib.Path.home() / ".cache" / "hdjax" / "xla"
+    assert compilation_cache_dir({COMPILATION_CACHE_ENV: " "}) == pathlib.Path.home() / ".cache" / "hdjax" / "xla"

@@ -291,3 +291,40 @@ def test_plant_stiff_part_carries_every_second_derivative_of_the_paper_models_st
     gap = lambda J: np.linalg.norm((J - exact).reshape(-1, len(names)), axis=0) / scale  # noqa: E731
     assert np.all(gap(corrected) < 1e-9), gap(corrected)
     assert gap(frozen).max() > 1e-6, gap(frozen)
+
+
+def test_first_step_in_the_controller_takes_the_same_steps_as_dt0():
+    """`FirstStep(controller, h)` with `dt0=None` steps exactly as `controller` with `dt0=h`."""
+    term = dfx.ODETerm(lambda t, y, a: jnp.stack([y[1], -1e3 * y[0] - 30.0 * y[1] + jnp.sin(40.0 * t)]))
+    y0 = jnp.array([1.0, 0.0])
+    pid = dfx.PIDController(rtol=1e-6, atol=1e-9)
+    clip = dfx.ClipStepSizeController(pid, step_ts=jnp.linspace(0.0, 0.5, 51))
+    for controller in (pid, clip):
+        kw = dict(t0=0.0, t1=0.5, y0=y0, saveat=dfx.SaveAt(steps=True), max_steps=4096)
+        ref = dfx.diffeqsolve(term, hdjax.Rodas3(), dt0=2.5e-3, stepsize_controller=controller, **kw)
+        new = dfx.diffeqsolve(term, hdjax.Rodas3(), dt0=None, stepsize_controller=hdjax.FirstStep(controller, jnp.asarray(2.5e-3)), **kw)
+        assert ref.stats["num_steps"] == new.stats["num_steps"] > 10
+        np.testing.assert_array_equal(np.asarray(new.ts), np.asarray(ref.ts))
+        np.testing.assert_array_equal(np.asarray(new.ys), np.asarray(ref.ys))
+    with pytest.raises(ValueError, match="dt0=None"):
+        dfx.diffeqsolve(term, hdjax.Rodas3(), dt0=1e-3, stepsize_controller=hdjax.FirstStep(pid, jnp.asarray(1e-3)), t0=0.0,
+                        t1=0.1, y0=y0)
+
+
+def test_the_simulation_holds_no_host_callback():
+    """JAX writes no program with a host callback to its persistent compilation cache
+    (`hdjax.use_compilation_cache`); the plant's simulation has none (diffrax checks a traced
+    `dt0` with one, so the first step is set in the controller, `FirstStep`)."""
+    import jax.extend.core as jc
+
+    def callbacks(jaxpr):
+        n = 0
+        for eqn in jaxpr.eqns:
+            n += "callback" in eqn.primitive.name
+            n += sum(callbacks(sub) for sub in jc.jaxprs_in_params(eqn.params))
+        return n
+
+    p, drive = hd2()
+    exp = sine_experiment("free", duration=0.2)
+    traced = jax.make_jaxpr(lambda p_: hdjax.simulate(p_, drive, exp).torque)(p)
+    assert callbacks(traced.jaxpr) == 0

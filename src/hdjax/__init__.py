@@ -96,15 +96,18 @@ from ._plant import (
     simulate_batch as simulate_batch,
 )
 from ._sharding import (
+    COMPILATION_CACHE_ENV as COMPILATION_CACHE_ENV,
     HOST_DEVICES_ENV as HOST_DEVICES_ENV,
     available_cores as available_cores,
+    compilation_cache_dir as compilation_cache_dir,
     experiment_batching as experiment_batching,
     for_each_experiment as for_each_experiment,
+    use_compilation_cache as use_compilation_cache,
     use_host_devices as use_host_devices,
 )
 from ._significance import FRICTION_RULES as FRICTION_RULES, OUTPUT_ERROR_RULES as OUTPUT_ERROR_RULES, Significance as Significance
 from ._smooth import smooth_sign as smooth_sign, smooth_signed_power as smooth_signed_power, smooth_step as smooth_step
-from ._solver import Rodas3 as Rodas3, Ros34PW2 as Ros34PW2
+from ._solver import FirstStep as FirstStep, Rodas3 as Rodas3, Ros34PW2 as Ros34PW2
 from ._stepper import VelocityImplicit as VelocityImplicit
 
 try:

@@ -169,10 +169,11 @@ def main(argv: list[str] | None = None) -> int:
 
     import jax
 
-    from ._sharding import use_host_devices
+    from ._sharding import use_compilation_cache, use_host_devices
 
     use_host_devices()  # every CPU core simulates its share of the experiments
     jax.config.update("jax_enable_x64", True)
+    use_compilation_cache()  # a later run reads back what this one compiles
     from ._config import ConfigError, validate_config
     from ._data import DatasetError
     from ._html import write_report_html

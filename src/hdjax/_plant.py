@@ -41,7 +41,7 @@ from ._sharding import (
     shard_experiments,
 )
 from ._smooth import smooth_sign, smooth_signed_power, smooth_step
-from ._solver import Rodas3, Ros34PW2
+from ._solver import FirstStep, Rodas3, Ros34PW2
 from ._stepper import VelocityImplicit, implicit_trajectory
 
 
@@ -522,8 +522,10 @@ def _simulate_one(p: Parameters, drive: Drive, exp: Experiment, effects: Effects
         dt0 = simulator.fixed_step
     else:
         pid = dfx.PIDController(rtol=simulator.rtol, atol=simulator.atol)
-        controller = dfx.ClipStepSizeController(pid, step_ts=exp.time) if simulator.step_to_samples else pid
-        dt0 = dt / 4
+        clipped = dfx.ClipStepSizeController(pid, step_ts=exp.time) if simulator.step_to_samples else pid
+        # the first step, a quarter of the sample step, set in the controller (`FirstStep`): the
+        # same steps as `dt0=dt / 4`, with no host callback in the compiled program
+        controller, dt0 = FirstStep(clipped, dt / 4), None
     # Steps clipped to the sample instants end on every sample: then the samples are read off the
     # saved steps (`SaveAt(steps=True)`, one array write per step) instead of diffrax's per-step
     # search-and-interpolate for `SaveAt(ts=...)`, which cost more than the Rosenbrock step itself

@@ -201,3 +201,47 @@ class Ros34PW2(_Rosenbrock):
     frozen_jacobian_tangents: bool = eqx.field(static=True, default=True)
     stiff_part: Callable | None = eqx.field(static=True, default=None)
     _tableau: ClassVar[Tableau] = ROS34PW2
+
+
+class FirstStep(dfx.AbstractAdaptiveStepSizeController):
+    """An adaptive step-size controller that takes its first step size from itself, so that
+    `diffeqsolve` is called with `dt0=None`.
+
+    Only that: `first_step` (s, positive, traced or not) is handed to the wrapped controller's
+    `init` as the `dt0` that `diffeqsolve` would have given it (times the direction of
+    integration), so the steps are the same as with `dt0=first_step`. Why: given a traced `dt0`,
+    `diffeqsolve` checks `(t1 - t0)·dt0 ≥ 0` with `equinox.error_if`, a host callback, and JAX
+    does not write a program with host callbacks to its persistent compilation cache. The plant's
+    solves start from a quarter of the sample step, which is traced (measured from the record), so
+    every simulation program was kept out of that cache."""
+
+    controller: dfx.AbstractAdaptiveStepSizeController
+    first_step: jax.Array
+    direction: jax.Array | int
+
+    def __init__(self, controller: dfx.AbstractAdaptiveStepSizeController, first_step, direction: jax.Array | int = 1):
+        self.controller, self.first_step, self.direction = controller, jnp.asarray(first_step), direction
+
+    @property
+    def rtol(self):  # pyright: ignore[reportIncompatibleVariableOverride]
+        return self.controller.rtol
+
+    @property
+    def atol(self):  # pyright: ignore[reportIncompatibleVariableOverride]
+        return self.controller.atol
+
+    @property
+    def norm(self):  # pyright: ignore[reportIncompatibleMethodOverride]
+        return self.controller.norm
+
+    def wrap(self, direction):
+        return eqx.tree_at(lambda s: (s.controller, s.direction), self, (self.controller.wrap(direction), direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        if dt0 is not None:
+            raise ValueError("`FirstStep` sets the first step itself: call `diffeqsolve` with `dt0=None`.")
+        first = jnp.asarray(self.first_step, dtype=jnp.result_type(t0)) * self.direction
+        return self.controller.init(terms, t0, t1, y0, first, args, func, error_order)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        return self.controller.adapt_step_size(t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state)
