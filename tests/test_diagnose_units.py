@@ -348,7 +348,7 @@ def test_every_reported_parameter_and_adjustment_has_a_unit():
     `parameter_units`, `adjustment_units`), and the report prints them: a user reads
     `b2 = 1.8 N·m, phi2 = 1.25 rad`, not bare numbers."""
     from hdjax._diagnose import _describe, parameter_units
-    from hdjax._diagnose_report import _with_units
+    from hdjax._diagnose_report import with_units
     from hdjax._effects import EFFECT_NAMES, FIELD_UNITS, MODEL_FORM, PERIODIC, SCALAR, Effects
 
     assert set(FIELD_UNITS) == {f for fields in (*SCALAR.values(), *MODEL_FORM.values()) for f in fields}
@@ -361,7 +361,7 @@ def test_every_reported_parameter_and_adjustment_has_a_unit():
     assert orders == [2] and parameter_units("torque_sensor_ripple", params) == {"b2": "N·m", "phi2": "rad"}
     assert parameter_units("kinematic_error", _describe(effects, "kinematic_error", [3])[0])["a3"] == "rad"
     assert parameter_units("nonlinear_stiffness", {"K3": 1e5}) == {"K3": "N·m/rad³"}
-    text = _with_units(params, parameter_units("torque_sensor_ripple", params))
+    text = with_units(params, parameter_units("torque_sensor_ripple", params))
     assert text == "b2 = 1.8 N·m, phi2 = 1.25 rad"
     # dimensionless values print bare
-    assert _with_units({"mu": 0.02, "delay": 5e-4}, {"mu": "-", "delay": "s"}) == "mu = 0.02, delay = 0.0005 s"
+    assert with_units({"mu": 0.02, "delay": 5e-4}, {"mu": "-", "delay": "s"}) == "mu = 0.02, delay = 0.0005 s"

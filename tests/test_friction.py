@@ -406,3 +406,14 @@ def test_stribeck_held_without_low_speed_samples_so_held_out_blocks_stay_bounded
     d = diagnose_friction(pr, log=lambda *_: None)
     # eq. 9 on 5 contiguous blocks: the first holds out the start-up, fitted on the steady run alone
     assert np.isfinite(d.baseline.rms) and d.baseline.rms < 0.2, d.baseline.rms  # N·m; the torque's RMS is 1.3 N·m
+
+
+def test_friction_finding_parameters_carry_units():
+    """Each parameter a friction-only finding reports has a unit (`parameter_units` in
+    diagnosis.json; the report prints it)."""
+    from hdjax._friction_cli import _finding_units
+
+    assert _finding_units({"epsilon3": 0.1, "phi3": 1.0, "b12": 0.2, "phi12": 0.3}) == {
+        "epsilon3": "-", "phi3": "rad", "b12": "N·m", "phi12": "rad"}  # fmt: skip
+    assert _finding_units({"presliding_distance": 1e-3}) == {"presliding_distance": "rad"}
+    assert _finding_units({"beta": 0.2, "tau": 600.0}) == {"beta": "-", "tau": "s"}

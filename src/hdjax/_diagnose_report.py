@@ -148,7 +148,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     return result
 
 
-def _with_units(values: dict, units: dict) -> str:
+def with_units(values: dict, units: dict) -> str:
     """`k = v unit, ...` for a finding's parameters or a model_form adjustment (no unit for "-")."""
     return ", ".join(f"{k} = {v:.4g}" + (f" {units[k]}" if units.get(k, "-") != "-" else "") for k, v in values.items())
 
@@ -163,7 +163,7 @@ def _report(r: dict) -> str:
             lines.append(f"- **{f['effect']}**{orders}: held-out error falls by {100 * g['relative_reduction']:.1f} % "
                          f"(torque NRMSE {g['heldout_nrmse_before']['torque']:.4f} → {g['heldout_nrmse_after']['torque']:.4f}); "
                          f"confidence {f['confidence']:.3f}. Parameters: "
-                         + _with_units(f["parameters"], f.get("parameter_units", {})) + f". Evidence: {f['evidence']}.")
+                         + with_units(f["parameters"], f.get("parameter_units", {})) + f". Evidence: {f['evidence']}.")
     else:
         lines += ["No finding: no effect of the vocabulary improves experiments held out of its fit significantly.", ""]
     if r.get("model_form"):
@@ -171,7 +171,7 @@ def _report(r: dict) -> str:
                   "Adopted before any effect was screened; each with its held-out gain:", ""]
         for f in r["model_form"]:
             lines.append(f"- **{f['assumption']}**: held-out error falls by {100 * f['gain']['relative_reduction']:.1f} %; "
-                         "adjustment " + _with_units(f["adjustment"], f.get("adjustment_units", {})) + ".")
+                         "adjustment " + with_units(f["adjustment"], f.get("adjustment_units", {})) + ".")
     if r["unexplained"]:
         lines += ["", "## What the model still leaves unexplained", ""]
         lines += [f"- {u['description']}: {u['evidence']}" for u in r["unexplained"]]

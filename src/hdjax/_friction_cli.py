@@ -9,6 +9,7 @@ import types
 import numpy as np
 
 from ._data import Dataset
+from ._diagnose_report import with_units
 from ._friction import FRICTION_NAMES, FRICTION_UNITS, HARMONIC_SLOTS, amplitude_phase
 from ._friction_diag import _add, _Fold, diagnose_friction, fold_params
 from ._friction_fit import (
@@ -346,6 +347,15 @@ def _finding_params(problem: FrictionProblem, fold: _Fold, effect: str) -> dict:
     return {}
 
 
+#: Units of a friction-only finding's parameters (`_finding_params`), by name without its order.
+_FINDING_UNITS = {"epsilon": "-", "b": "N·m", "phi": "rad", "presliding_distance": "rad", "beta": "-", "tau": "s"}
+
+
+def _finding_units(params: dict) -> dict[str, str]:
+    """The unit of each parameter `_finding_params` reports (`epsilon3` → "-", `phi3` → rad, ...)."""
+    return {k: _FINDING_UNITS[k.rstrip("0123456789")] for k in params}
+
+
 _PHYSICS = {
     "position_dependent_friction": "Coulomb friction modulated with joint angle (orders in cycles per turn of `position`)",
     "position_dependent_torque": "a direction-independent torque periodic in angle: on joint data a rigid-body "
@@ -387,6 +397,7 @@ def friction_diagnosis_doc(problem: FrictionProblem, dataset_name: str, *, min_g
                          f"{len(d.rows.labels)} folds ({'; '.join(d.rows.labels)})."
                          + _span_note(fold, f["effect"], span)),
             "parameters": ext_params[f["effect"]],
+            "parameter_units": _finding_units(ext_params[f["effect"]]),
             "gain": {"heldout_nrmse_before": {"friction_torque": b.nrmse},
                      "heldout_nrmse_after": {"friction_torque": a.nrmse},
                      "heldout_rms_before": b.rms, "heldout_rms_after": a.rms,
@@ -474,7 +485,7 @@ def _diag_report(dataset, doc, figs) -> str:
                      f"{doc['cross_validation']['rule']}, min_gain {doc['cross_validation']['min_gain']}).")
     for f in doc["findings"]:
         lines.append(f"- **{f['effect']}** ({f['gain']['relative_reduction']:+.1%} held-out RMS): {f['evidence']} "
-                     f"Parameters: {', '.join(f'{k} = {v:.4g}' for k, v in f['parameters'].items())}.")
+                     f"Parameters: {with_units(f['parameters'], f.get('parameter_units', {}))}.")
     lines += ["", "## Candidates per round", ""]
     for i, r in enumerate(doc["rounds"]):
         lines.append(f"Round {i + 1}: " + "; ".join(
