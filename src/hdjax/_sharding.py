@@ -90,10 +90,10 @@ def use_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path
     JAX writes no program that holds a host callback: the LM programs, which report their
     progress through one, are compiled on every run. The simulations hold none (`FirstStep` keeps
     diffrax's check of a traced `dt0` out of them), so the batch simulation, the process-noise
-    residuals and the paper's regressions are read back; so, untimed, are the diagnosis's
-    simulation and Jacobian programs, which are built on the same simulation. Measured on the
-    shipped HD2 fit (2026-12-01, 2-core machine): the second run 91.4 s against 101.8 s, the
-    same results to the last bit."""
+    residuals and the paper's regressions are read back, and so are the diagnosis's simulation
+    and Jacobian programs. Measured on the 2-core machine (2026-12-01), second run against first,
+    the same results to the last bit: the shipped HD2 fit 89.4 s against 109.3 s; a diagnosis of
+    a 4 + 4-record bench dataset 103 s against 143 s (its Jacobians 18 s against 36 s)."""
     import warnings
 
     configured = jax.config.jax_compilation_cache_dir  # pyright: ignore[reportAttributeAccessIssue]  a jax.config option
