@@ -10,6 +10,7 @@ import numpy as np
 
 from ._data import Dataset
 from ._diagnose_report import with_units
+from ._effects import FIELD_UNITS
 from ._friction import FRICTION_NAMES, FRICTION_UNITS, HARMONIC_SLOTS, amplitude_phase
 from ._friction_diag import _add, _Fold, diagnose_friction, fold_params
 from ._friction_fit import (
@@ -347,8 +348,10 @@ def _finding_params(problem: FrictionProblem, fold: _Fold, effect: str) -> dict:
     return {}
 
 
-#: Units of a friction-only finding's parameters (`_finding_params`), by name without its order.
-_FINDING_UNITS = {"epsilon": "-", "b": "N·m", "phi": "rad", "presliding_distance": "rad", "beta": "-", "tau": "s"}
+#: Units of a friction-only finding's parameters (`_finding_params`), by name without its order;
+#: thermal drift's β and τ as the dynamic model's (`FIELD_UNITS`).
+_FINDING_UNITS = {"epsilon": "-", "b": "N·m", "phi": "rad", "presliding_distance": "rad",
+                  **{k: FIELD_UNITS[k] for k in ("beta", "tau")}}
 
 
 def _finding_units(params: dict) -> dict[str, str]:
