@@ -8,7 +8,9 @@ identification on a real bench (that is an inverse crime by design). On the inde
 `test_diagnose_bench.py`."""
 
 import json
+import types
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,9 +18,10 @@ import optimistix as optx
 import pytest
 
 import hdjax
+import hdjax._fit
 from hdjax import CostStop, block_covariance, fit_parameters, fit_per_experiment, identify_paper, load_dataset, write_dataset
 from hdjax._covariance import robust_covariance
-from hdjax._fit import _final_residual_and_jacobian, _stalled
+from hdjax._fit import _final_residual_and_jacobian, _stalled, _stepped_least_squares
 from hdjax.fit import run_fit
 from helpers import hd2
 
@@ -93,10 +96,12 @@ def test_fit_workflow_writes_spec_keys(campaign, tmp_path):
     assert (out / "report.md").exists() and (out / "fig4_torque_fit.png").exists()
 
 
-def test_per_experiment_fits_give_the_trajectory_consistency(campaign, joint):
+def test_per_experiment_fits_give_the_trajectory_consistency(campaign, joint, monkeypatch):
     """One LM fit per experiment (vmap), started from the joint fit as the `fit` workflow does:
     each experiment fits only what it informs, recovers the truth, and the spread of the estimates
-    (the paper's consistency measure) is small."""
+    (the paper's consistency measure) is small. The batch is fitted in chunks of experiments, each
+    a call of the same compiled program, so that progress can be reported between them without a
+    host callback; fitting it in one call gives the same estimates to the last bit."""
     p, drive, exps, modes = campaign
     batch = hdjax.stack_experiments(exps)
     free = ("K1", "Tst", "Jeff", "Tsp")
@@ -111,6 +116,11 @@ def test_per_experiment_fits_give_the_trajectory_consistency(campaign, joint):
         assert np.all(np.abs(v / float(getattr(p, k)) - 1) < 0.05), (k, v)
         assert res.consistency(k) < 0.05, k
     assert not active[4] and np.all(np.isnan(res.values[4]))
+    # the batch runs in chunks (progress is reported between them); one chunk gives the same fits
+    monkeypatch.setattr(hdjax._fit, "PER_EXPERIMENT_REPORTS", 1)
+    whole = fit_per_experiment(joint.params, drive, batch, mask, free=free, max_steps=12)
+    np.testing.assert_array_equal(whole.values, res.values)
+    np.testing.assert_array_equal(whole.steps, res.steps)
 
 
 def test_stall_rule():
@@ -148,6 +158,62 @@ def test_stall_stop_ends_a_jittery_fit():
         assert jnp.allclose(s.value, exact, atol=2e-3)
     r, J = _final_residual_and_jacobian(sol)
     assert jnp.allclose(r, fn(sol.value, None)) and jnp.allclose(J, A, atol=1e-2)
+
+
+def _callbacks(jaxpr) -> int:
+    import jax.extend.core as jc
+
+    return sum(("callback" in eqn.primitive.name) + sum(_callbacks(sub) for sub in jc.jaxprs_in_params(eqn.params))
+               for eqn in jaxpr.eqns)
+
+
+@pytest.mark.parametrize("inner", [optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8), hdjax.MarquardtLM(rtol=1e-8, atol=1e-8)],
+                         ids=["optimistix_lm", "marquardt_lm"])
+def test_lm_stepped_from_python_takes_optimistix_own_steps_and_holds_no_callback(inner):
+    """`fit_parameters` steps LM from Python (`_stepped_least_squares`: a start program and a step
+    program) so that its programs hold no host callback, which JAX's persistent compilation cache
+    refuses, and reports each step from there. On a nonlinear problem it must give
+    `optx.least_squares`'s own iterate, result, step count, stop rule, residual and Jacobian to
+    the last bit, report every step with the cost at its accepted point, and compile each program
+    once."""
+    t = jnp.linspace(0.0, 3.0, 200)
+    y = 2.0 * jnp.exp(-0.7 * t) + 0.3 * jnp.sin(3.0 * t) + 0.01 * jnp.cos(17.0 * t)
+
+    def residuals(theta, args):
+        t_, y_ = args
+        return theta[0] * jnp.exp(-theta[1] * t_) + theta[2] * jnp.sin(3.0 * t_) - y_
+
+    lm = CostStop(inner)
+    theta0, args = jnp.array([1.0, 0.2, 0.0]), (t, y)
+    @jax.jit
+    def reference(th, a):
+        sol = optx.least_squares(residuals, lm, th, a, max_steps=40, throw=False)
+        return sol.value, sol.result, sol.stats["num_steps"], sol.state.reason, *_final_residual_and_jacobian(sol)
+
+    value, result_ref, steps_ref, reason_ref, r_ref, J_ref = reference(theta0, args)
+
+    def finish(theta, state, result, num_steps, args_):
+        return theta, result, state.reason, num_steps, *_final_residual_and_jacobian(types.SimpleNamespace(state=state))
+
+    run = _stepped_least_squares(residuals, lm, max_steps=40, finish=finish)
+    for _ in range(2):  # the second run reuses the compiled programs
+        reports = []
+        theta, result, reason, steps, r, J = run(theta0, args, lambda *v: reports.append(v))
+        np.testing.assert_array_equal(np.asarray(theta), np.asarray(value))
+        assert result == result_ref == optx.RESULTS.successful
+        assert int(steps) == int(steps_ref) == len(reports) > 2
+        assert int(reason) == int(reason_ref)
+        np.testing.assert_array_equal(np.asarray(r), np.asarray(r_ref))
+        np.testing.assert_array_equal(np.asarray(J), np.asarray(J_ref))
+        assert [k for k, _, _ in reports] == list(range(1, len(reports) + 1))
+        assert reports[-1][1] == pytest.approx(0.5 * float(jnp.sum(r_ref**2)), rel=1e-12)
+    dynamic, static, _, _ = run.start(theta0, args)
+    for program, call in ((run.start, (theta0, args)), (run.step, (theta0, dynamic, static, args))):
+        assert program._cached._cache_size() == 1  # pyright: ignore[reportAttributeAccessIssue]  equinox's jit wrapper
+        assert _callbacks(eqx.filter_make_jaxpr(program)(*call)[0].jaxpr) == 0
+    with_callback = CostStop(inner, callback=lambda *_: None)
+    assert _callbacks(jax.make_jaxpr(lambda th: optx.least_squares(residuals, with_callback, th, args, max_steps=40,
+                                                                  throw=False).value)(theta0).jaxpr) > 0
 
 
 def test_a_second_fit_of_the_same_shapes_reuses_the_compiled_program_and_gives_the_fresh_result(campaign):

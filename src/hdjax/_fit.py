@@ -20,7 +20,6 @@ components {offset, constant velocity} of each experiment before weighting, so a
 error cannot dominate it; what remains (torsion and acceleration history) carries the information.
 """
 
-import contextlib
 import dataclasses
 import functools
 from collections.abc import Callable
@@ -43,7 +42,15 @@ from ._paper_id import _consistency
 from ._parameterisation import Entry, Parameterisation, parameterisation
 from ._plant import Simulator, is_fixed_cost, simulate
 from ._progress import count_progress, lm_progress
-from ._sharding import experiment_mesh, for_each_experiment, map_experiments, replicated, shard_experiments
+from ._sharding import (
+    experiment_batching,
+    experiment_mesh,
+    for_each_experiment,
+    map_experiments,
+    pad_experiments,
+    replicated,
+    shard_experiments,
+)
 
 CHANNELS = ("torque", "motor_velocity", "output_position")
 POSITIVE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tss2")
@@ -285,6 +292,8 @@ class _StopState(eqx.Module):
     inner: object
     checkpoint: jax.Array  # ½χ² at the last stall check (inf before the first)
     reason: jax.Array  # index into STOP_REASONS (0: none of CostStop's rules)
+    cost: jax.Array  # ½χ² at the accepted point after the last step (inf before the first)
+    step_se: jax.Array  # the Gauss–Newton step left there, in standard errors (inf before the first)
 
 
 STOP_REASONS = ("tolerance", "gauss_newton_step_small", "cost_stalled", "predicted_gain_small")
@@ -317,8 +326,10 @@ class CostStop(optx.AbstractLeastSquaresSolver):
     window: int = STALL_WINDOW
     callback: Callable | None = eqx.field(default=None, static=True)
     """Host function `(step, ½χ², Gauss–Newton step in standard errors)` called after every LM
-    step through `jax.debug.callback` (progress display, `hdjax._progress.lm_progress`); None
-    compiles nothing in."""
+    step through `jax.debug.callback`; None compiles nothing in. A program that holds a host
+    callback is never written to JAX's persistent compilation cache: `fit_parameters` leaves it
+    None and reports its steps from Python (`_stepped_least_squares`), reading the same figures
+    from the state (`cost`, `step_se`)."""
 
     # equinox lets a property implement an `AbstractVar`; pyright takes them for dataclass fields
     @property
@@ -335,7 +346,7 @@ class CostStop(optx.AbstractLeastSquaresSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
-        return _StopState(inner, jnp.array(jnp.inf), jnp.array(0))
+        return _StopState(inner, jnp.array(jnp.inf), jnp.array(0), jnp.array(jnp.inf), jnp.array(jnp.inf))
 
     def step(self, fn, y, args, options, state, tags):
         y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
@@ -349,7 +360,7 @@ class CostStop(optx.AbstractLeastSquaresSolver):
         reason = jnp.where(m < self.step_se_tol, 1, jnp.where(stalled, 2, jnp.where(small_gain, 3, 0)))
         if self.callback is not None:
             jax.debug.callback(self.callback, inner.num_steps, cost, m)
-        return y, _StopState(inner, checkpoint, reason), aux
+        return y, _StopState(inner, checkpoint, reason, cost, m), aux
 
     def terminate(self, fn, y, args, options, state, tags):
         terminate, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
@@ -440,10 +451,8 @@ def fit_parameters(
     if mesh is not None:
         batch, _ = shard_experiments(batch, mesh)
     with lm_progress(f"LM fit ({len(free)} parameters, {n_exp} experiments)", max_steps) as callback:
-        run = _cached(_joint_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh,
-                      callback is not None)
-        with _relayed("lm", callback):
-            theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (pmap, p0, drive, batch, sigma)))
+        run = _cached(_joint_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh)
+        theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (pmap, p0, drive, batch, sigma), callback))
     stop = str(_stop_reason(result, reason))
     if throw and stop == "max_steps":
         raise RuntimeError(
@@ -527,8 +536,10 @@ def fit_per_experiment(
     cost_rtol: float = 1e-5,
     sigma=None,
 ) -> PerExperimentFit:
-    """One trajectory-error LM fit per experiment, all in one JIT (`for_each_experiment`: `lax.map`
-    on the CPU, `vmap` on accelerators).
+    """One trajectory-error LM fit per experiment, all by one compiled program (`for_each_experiment`:
+    `lax.map` on the CPU, `vmap` on accelerators). On the CPU it is called on chunks of the batch
+    (`_per_experiment_chunk`) so that progress is reported between them; the fits are the same to
+    the last bit as in one call (a test).
 
     Experiment `e` fits the parameters `free[k]` with `mask[e, k]` True and keeps the others at
     `p0` (for example the joint fit's estimate), so each experiment estimates only what it can
@@ -575,21 +586,29 @@ def fit_per_experiment(
     # several devices: each fits its share of the experiments (masked dummies pad the batch; their
     # slots are off, so they hold still and are dropped below)
     mesh = experiment_mesh() if jax.device_count() > 1 and isinstance(solver, MarquardtLM) else None
-    if mesh is not None:
-        batch, _ = shard_experiments(batch, mesh)
-        extra = int(batch.time.shape[0]) - n_exp
-        slot_index = np.concatenate([slot_index, np.zeros((extra, n_slots), dtype=int)])
-        slot_on = np.concatenate([slot_on, np.zeros((extra, n_slots))])
-    idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
+    chunk = _per_experiment_chunk(n_exp, 1 if mesh is None else mesh.size, experiment_batching(fixed_cost=is_fixed_cost(simulator)))
+    run = _cached(_per_experiment_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh)
+    order = _interleaved(n_exp, 1 if mesh is None else mesh.size, chunk)
+    parts = []
     with count_progress("per-experiment LM fits", n_exp, unit="experiments") as done:
-        run = _cached(_per_experiment_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol,
-                      mesh, done is not None)
-        with _relayed("count", done):
-            z_final, result, reason, steps, r = jax.block_until_ready(
-                run(jnp.zeros((idx.shape[0], n_slots)), (pmap, theta0, p0, drive, batch, sigma, idx, on))
-            )
-    z_final, steps, r = (np.asarray(x)[:n_exp] for x in (z_final, steps, r))
-    ok = (_stop_reason(result, reason)[:n_exp] != "max_steps") & active
+        for lo in range(0, n_exp, chunk):
+            take = order[lo:lo + chunk]
+            part, n_real = pad_experiments(jax.tree.map(lambda x: x[take], batch), chunk)
+            if mesh is not None:
+                part, _ = shard_experiments(part, mesh)
+            pad = chunk - n_real  # dummies: slots off
+            idx = jnp.asarray(np.concatenate([slot_index[take], np.zeros((pad, n_slots), dtype=int)]))
+            on = jnp.asarray(np.concatenate([slot_on[take], np.zeros((pad, n_slots))]))
+            z, result, reason, steps, r = jax.block_until_ready(
+                run(jnp.zeros((chunk, n_slots)), (pmap, theta0, p0, drive, part, sigma, idx, on)))
+            parts.append([np.asarray(x)[:n_real] for x in (z, steps, r)] + [_stop_reason(result, reason)[:n_real]])
+            if done is not None:
+                for _ in range(n_real):
+                    done()
+    back = np.argsort(order)  # the fits in the batch's order
+    z_final, steps, r, stop = (np.concatenate(xs)[back] for xs in zip(*parts))
+    idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
+    ok = (stop != "max_steps") & active
     rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
     values = np.full(mask.shape, np.nan)
     for e in np.flatnonzero(ok):
@@ -614,31 +633,39 @@ def fit_per_experiment(
 # function at every call, so every call traced and compiled it again (about 20 s on this 2-core CPU
 # for the diagnosis's base fit, paid once per dataset). Built here, once per (free parameters,
 # numerics, LM options), with every value (parameter map, start, data, noise levels) an argument,
-# a second fit of the same shapes reuses the compiled program. Progress callbacks change from
-# call to call: the program calls a fixed relay (`_relay_lm`, `_relay_count`) that forwards to the
-# callback installed for the current call.
+# a second fit of the same shapes reuses the compiled program. The programs hold no host callback
+# (progress is reported from Python between calls), so JAX's persistent compilation cache keeps
+# them too (`hdjax.use_compilation_cache`).
 
-_RELAY: dict[str, Callable | None] = {"lm": None, "count": None}
-
-
-def _relay_lm(*values):
-    if _RELAY["lm"] is not None:
-        _RELAY["lm"](*values)
+PER_EXPERIMENT_REPORTS = 8
+"""About how many progress reports `fit_per_experiment` makes (one per chunk of its batch)."""
 
 
-def _relay_count(*values):
-    if _RELAY["count"] is not None:
-        _RELAY["count"](*values)
+def _interleaved(n_exp: int, n_devices: int, chunk: int) -> np.ndarray:
+    """The order in which `fit_per_experiment` takes the experiments into its chunks of `chunk`:
+    within each run of `chunk` neighbouring experiments, device d's share is every
+    `n_devices`-th one from the d-th. A campaign lists its locked tests, then its free ones, whose
+    fits cost several times more, so the devices' shares of a chunk cost about the same and
+    neither waits long for the other at the chunk's end."""
+    order = []
+    for lo in range(0, n_exp, chunk):
+        block = range(lo, min(lo + chunk, n_exp))
+        order += [e for d in range(n_devices) for e in block[d::n_devices]]
+    return np.asarray(order, dtype=int)
 
 
-@contextlib.contextmanager
-def _relayed(kind: str, callback):
-    before = _RELAY[kind]
-    _RELAY[kind] = callback
-    try:
-        yield
-    finally:
-        _RELAY[kind] = before
+def _per_experiment_chunk(n_exp: int, n_devices: int, batching: str) -> int:
+    """Experiments per call of the per-experiment fit program: the whole batch when a device runs
+    its experiments in lock-step (`vmap`), else a multiple of the devices that splits the batch
+    into about `PER_EXPERIMENT_REPORTS` calls. Each call is the same compiled program (the last
+    chunk is padded with dummies); between calls the progress bar advances. On the CPU a device
+    fits its experiments one after the other (`lax.map`), so a chunk costs the sum of its fits:
+    what the chunks add is that both devices wait for the slower one at the end of each chunk."""
+    per_device = -(-n_exp // n_devices)
+    if batching == "vmap":
+        return per_device * n_devices
+    k = -(-per_device // PER_EXPERIMENT_REPORTS)
+    return k * n_devices
 
 
 def _cached(build, *key):
@@ -651,10 +678,93 @@ def _cached(build, *key):
     return build(*key)
 
 
+def _strong(tree):
+    """Every array leaf without JAX's weak type, so the state a step returns has the type of the
+    state it was given (else the step program is traced and compiled a second time)."""
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype=x.dtype), tree)
+
+
+def _stepped_least_squares(fn, solver: optx.AbstractLeastSquaresSolver, *, max_steps: int, finish, mesh=None):
+    """`optx.least_squares(fn, solver, y0, args, max_steps=max_steps, throw=False)` as compiled
+    programs stepped from Python, for a `CostStop` solver: `run(y0, args, on_step=None)` →
+    `finish(y, state, result, num_steps, args)`.
+
+    optimistix runs `solver.init`, then `solver.step` in a `while_loop` until `solver.terminate`
+    says stop or `max_steps` steps are done. Here the start (init and the first termination test)
+    is one compiled program and one step with its termination test is another, called in a Python
+    loop, and `finish` (with optimistix's own `max_steps` result) a third. The arithmetic is
+    optimistix's own, step for step: the iterates, the stop rule and the result code are the same
+    to the last bit (`tests/test_fit.py`). What changes is where the progress report is made:
+    `on_step(step, ½χ², Gauss–Newton step in standard errors)` is called from Python after each
+    step, with the figures `CostStop` keeps in its state, where a `jax.debug.callback` inside the
+    loop made it before. A compiled program that holds a host callback is never written to JAX's
+    persistent compilation cache, so the LM programs (10–15 s of compilation each on the 2-core
+    machine) were compiled on every run of a command; now they are read back.
+
+    The state's non-array part (its structure, the linearisation's functions) is the start
+    program's, passed to the step program as a static argument, as optimistix's loop combines
+    its start state's static part with each step's arrays. The state the programs return has one
+    type and, with a device `mesh`, one placement (replicated: the start's state would otherwise
+    sit on one device and the steps' be spread over the mesh), so the step program is compiled
+    once."""
+    tags, options = frozenset(), {}
+
+    def placed(tree):
+        tree = _strong(tree)
+        if mesh is None:
+            return tree
+        everywhere = replicated(mesh)
+        return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, everywhere), tree)
+
+    def fn_aux(y, args):
+        return fn(y, args), None
+
+    def terminate(y, state, args):
+        done, result = solver.terminate(fn_aux, y, args, options, state, tags)
+        return done, optx.RESULTS.where(jnp.all(jnp.isfinite(y)), result, optx.RESULTS.nonfinite)
+
+    @eqx.filter_jit
+    def start(y0, args):
+        f_struct = jax.eval_shape(fn, y0, args)
+        state = solver.init(fn_aux, y0, args, options, f_struct, None, tags)
+        dynamic, static = eqx.partition(state, eqx.is_array)
+        return placed(dynamic), static, *placed(terminate(y0, state, args))
+
+    @eqx.filter_jit
+    def step(y, dynamic, static, args):
+        y_new, state, _ = solver.step(fn_aux, y, args, options, eqx.combine(dynamic, static), tags)
+        done, result = terminate(y, state, args)  # optimistix tests the new state at the old iterate
+        return placed((y_new, eqx.partition(state, eqx.is_array)[0], done, result))
+
+    @eqx.filter_jit
+    def end(y, dynamic, static, done, result, num_steps, args):
+        result = optx.RESULTS.where((result == optx.RESULTS.successful) & jnp.invert(done),
+                                    optx.RESULTS.nonlinear_max_steps_reached, result)
+        return finish(y, eqx.combine(dynamic, static), result, num_steps, args)
+
+    def run(y0, args, on_step=None):
+        y = _strong(jnp.asarray(y0, dtype=float))
+        if mesh is not None:
+            y = jax.device_put(y, replicated(mesh))
+        dynamic, static, done, result = start(y, args)
+        num_steps = 0
+        while num_steps < max_steps and not bool(done) and result == optx.RESULTS.successful:
+            y, dynamic, done, result = step(y, dynamic, static, args)
+            num_steps += 1
+            if on_step is not None:
+                on_step(int(dynamic.inner.num_steps), float(dynamic.cost), float(dynamic.step_se))
+        return end(y, dynamic, static, done, result, jnp.asarray(num_steps), args)
+
+    run.start, run.step, run.end = start, step, end  # pyright: ignore[reportFunctionMemberAccess]  the programs, for tests
+    return run
+
+
 @functools.lru_cache(maxsize=32)
-def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh, progress):
-    """The compiled joint fit: `run(theta0, (pmap, p0, drive, batch, sigma))` → (θ, result, stop
-    rule, steps, residual, Jacobian at θ)."""
+def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh):
+    """The compiled joint fit: `run(theta0, (pmap, p0, drive, batch, sigma), on_step=None)` → (θ,
+    result, stop rule, steps, residual, Jacobian at θ); LM stepped from Python
+    (`_stepped_least_squares`), so its programs hold no host callback and JAX's persistent cache
+    keeps them."""
 
     def residuals(theta, args):
         pmap, p0_, drive_, batch_, sigma_ = args
@@ -668,20 +778,16 @@ def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rto
         r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
         return r.reshape(-1)
 
-    residuals_lm = _lm_objective(residuals)
-    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol, callback=_relay_lm if progress else None)  # pyright: ignore[reportCallIssue]  rtol/atol/norm are properties
-
-    # one JIT for the whole fit; data enter as arguments (never as closed-over constants, which
-    # XLA would try to constant-fold)
-    @eqx.filter_jit
-    def run(theta0, args):
-        sol = optx.least_squares(residuals_lm, lm, theta0, args, max_steps=max_steps, throw=False)
-        r, J = _final_residual_and_jacobian(sol)
+    def finish(theta, state, result, num_steps, args):
+        info = state.inner.f_info
+        r, J = info.residual, lx.materialise(info.jac).as_matrix()
         if mesh is not None:  # every process can read the result (multi-host)
             r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
-        return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], r, J
+        return theta, result, state.reason, num_steps, r, J
 
-    return run
+    # data enter as arguments (never as closed-over constants, which XLA would try to constant-fold)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)  # pyright: ignore[reportCallIssue]  rtol/atol/norm are properties
+    return _stepped_least_squares(_lm_objective(residuals), lm, max_steps=max_steps, finish=finish, mesh=mesh)
 
 
 def _full_theta(z, theta0, idx, on):
@@ -690,9 +796,11 @@ def _full_theta(z, theta0, idx, on):
 
 
 @functools.lru_cache(maxsize=32)
-def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh, progress):
+def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh):
     """The compiled per-experiment fits: `run(z0, (pmap, θ0, p0, drive, batch, sigma, idx, on))` →
-    per experiment (z, result, stop rule, steps, residual)."""
+    per experiment (z, result, stop rule, steps, residual). It holds no host callback, so JAX's
+    persistent cache keeps it; `fit_per_experiment` calls it on chunks of the batch and reports
+    its progress between them (`_per_experiment_chunk`)."""
 
     def residuals(z, args):
         pmap, theta0_, p0_, drive_, exp, sigma_, idx, on = args
@@ -712,8 +820,6 @@ def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol,
             def one(z_e, exp, idx_e, on_e):
                 sol = optx.least_squares(residuals_lm, lm, z_e, (pmap_, theta0_d, p0_d, drive_d, exp, sigma_d, idx_e, on_e),
                                          max_steps=max_steps, throw=False)
-                if progress:  # after this experiment's fit (its result is the argument)
-                    jax.debug.callback(_relay_count, sol.stats["num_steps"])
                 return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
 
             return for_each_experiment(one, *b)

@@ -6,9 +6,11 @@ callable and stay usable with `print`, `None` or any function of one string. The
 that wants a bar asks for one with `task(log, ...)`, which gives a do-nothing stand-in when `log`
 is not a `RunLog`; so the library never depends on a terminal.
 
-Work inside compiled loops (the Levenberg–Marquardt steps of `hdjax._fit.fit_parameters`, the
-per-experiment fits) reports through `jax.debug.callback`, set up only when a bar is wanted:
-`current()` is the `RunLog` of the command running in this thread, if any.
+Work in compiled programs reports from Python between calls, never through a host callback inside
+them (JAX's persistent compilation cache refuses such programs): `hdjax._fit.fit_parameters` steps
+its Levenberg–Marquardt loop from Python and reports each step, `fit_per_experiment` reports
+after each chunk of experiments. `current()` is the `RunLog` of the command running in this
+thread, if any.
 """
 
 import contextlib
@@ -227,9 +229,9 @@ def task(log, description: str, total: int | float | None = None, *, unit: str =
 
 @contextlib.contextmanager
 def lm_progress(description: str, max_steps: int, log=None):
-    """For `hdjax._fit`: yields a host callback `(step, cost, gn_step_in_se)` that advances a bar
-    of `max_steps` LM steps (ETA: an upper bound, LM usually stops earlier), or None when no
-    `RunLog` is listening (then nothing is compiled into the loop)."""
+    """For `hdjax._fit`: yields a function `(step, cost, gn_step_in_se)`, called after each LM
+    step, that advances a bar of `max_steps` LM steps (ETA: an upper bound, LM usually stops
+    earlier), or None when no `RunLog` is listening."""
     target = log if isinstance(log, RunLog) else current()
     if target is None:
         yield None
@@ -245,8 +247,8 @@ def lm_progress(description: str, max_steps: int, log=None):
 
 @contextlib.contextmanager
 def count_progress(description: str, total: int, *, unit: str, log=None):
-    """For compiled per-item loops: yields a host callback `(*values)` that advances a bar of
-    `total` items by one, or None when no `RunLog` is listening."""
+    """For work done item by item: yields a function `(*values)` that advances a bar of `total`
+    items by one, or None when no `RunLog` is listening."""
     target = log if isinstance(log, RunLog) else current()
     if target is None:
         yield None
