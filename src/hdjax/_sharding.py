@@ -87,13 +87,16 @@ def use_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path
     already set (`JAX_COMPILATION_CACHE_DIR`) as it is. Returns the folder, or None when the cache
     is off or its folder cannot be made (then it warns and nothing is cached).
 
-    JAX writes no program that holds a host callback: the LM programs, which report their
-    progress through one, are compiled on every run. The simulations hold none (`FirstStep` keeps
-    diffrax's check of a traced `dt0` out of them), so the batch simulation, the process-noise
-    residuals and the paper's regressions are read back, and so are the diagnosis's simulation
-    and Jacobian programs. Measured on the 2-core machine (2026-12-01), second run against first,
-    the same results to the last bit: the shipped HD2 fit 89.4 s against 109.3 s; a diagnosis of
-    a 4 + 4-record bench dataset 103 s against 143 s (its Jacobians 18 s against 36 s)."""
+    JAX writes no program that holds a host callback. The simulations hold none (`FirstStep`
+    keeps diffrax's check of a traced `dt0` out of them), and the LM fits report their progress
+    from Python between compiled steps (`hdjax._fit._stepped_least_squares`), so the batch
+    simulation, the process-noise residuals, the paper's regressions, both LM programs and the
+    diagnosis's simulation and Jacobian programs are read back. Tracing is not cached: a run still
+    traces its programs (about 8 s for the HD2 joint fit's start). Measured on the 2-core machine,
+    with the same results to the last bit: the shipped HD2 fit command 98.5 s with an empty cache
+    and 73–80 s on later runs (2026-12-02; 109 s and 89 s on 2026-12-01, when the LM programs were
+    compiled on every run); a diagnosis of a 4 + 4-record bench dataset 143 s, then 103 s
+    (2026-12-01, before the LM change; its Jacobians 36 s, then 18 s)."""
     import warnings
 
     configured = jax.config.jax_compilation_cache_dir  # pyright: ignore[reportAttributeAccessIssue]  a jax.config option
