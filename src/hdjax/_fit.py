@@ -315,8 +315,9 @@ class CostStop(optx.AbstractLeastSquaresSolver):
       fit every step after that point was rejected (steps 5–9 of 9, ½χ² unchanged to 8 digits,
       2026-11-27).
 
-    Everything else is the inner solver's; the fit stays one compiled optimistix loop with one
-    residual-and-Jacobian evaluation per LM step. `state.reason` says which rule stopped it
+    Everything else is the inner solver's, with one residual-and-Jacobian evaluation per LM step:
+    in `optx.least_squares` it is one compiled optimistix loop, and `fit_parameters` takes the same
+    steps from Python (`_stepped_least_squares`). `state.reason` says which rule stopped it
     (`STOP_REASONS`); `state.inner.f_info` holds the residual and Jacobian at the returned point."""
 
     inner: optx.AbstractLeastSquaresSolver

@@ -213,7 +213,7 @@ def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
 
 
 def _per_experiment_fits(paper, res, drive, full, files, opts, notes, log):
-    """The trajectory method's consistency: one LM fit per experiment (one JIT), each experiment
+    """The trajectory method's consistency: one LM fit per experiment (one compiled program), each experiment
     fitting what the paper's regressions take from it (locked: K1, Tst; fast free motion: Jeff and
     the viscous/Coulomb terms of the directions it covers; slow free motion: Stribeck), the rest
     fixed at the joint estimate. Returns the fits (None when off or no experiment informs a
@@ -226,7 +226,7 @@ def _per_experiment_fits(paper, res, drive, full, files, opts, notes, log):
     informed = np.any(mask, axis=1)
     if not informed.any():
         return per_fit, t_per
-    log(f"[2b/4] per-experiment trajectory-error fits ({int(informed.sum())} experiments, one JIT)")
+    log(f"[2b/4] per-experiment trajectory-error fits ({int(informed.sum())} experiments, one compiled program)")
     t0 = time.time()
     per_fit = fit_per_experiment(
         res.params, drive, full, mask, free=res.free, simulator=per_experiment_simulator(opts["trajectory"]), sigma=res.sigma,
