@@ -662,7 +662,7 @@ def _per_experiment_chunk(n_exp: int, n_devices: int, batching: str) -> int:
     chunk is padded with dummies); between calls the progress bar advances. On the CPU a device
     fits its experiments one after the other (`lax.map`), so a chunk costs the sum of its fits:
     what the chunks add is that both devices wait for the slower one at the end of each chunk."""
-    per_device = -(-n_exp // n_devices)
+    per_device = max(1, -(-n_exp // n_devices))
     if batching == "vmap":
         return per_device * n_devices
     k = -(-per_device // PER_EXPERIMENT_REPORTS)
