@@ -24,3 +24,12 @@ def sine_experiment(mode, *, amplitude=1.0, freq=2.0, duration=0.5, dt=1e-3, off
     i = offset + amplitude * np.sin(2 * np.pi * freq * t) * np.minimum(1.0, t / 0.05)
     z = np.zeros_like(t)
     return hdjax.make_experiment(t, i, z, z, mode=mode, output_position=z)
+
+
+def host_callbacks(jaxpr) -> int:
+    """How many host-callback equations a jaxpr holds, nested jaxprs included (JAX writes no
+    program with one to its persistent compilation cache)."""
+    import jax.extend.core as jc
+
+    return sum(("callback" in eqn.primitive.name) + sum(host_callbacks(sub) for sub in jc.jaxprs_in_params(eqn.params))
+               for eqn in jaxpr.eqns)

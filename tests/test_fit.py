@@ -8,7 +8,6 @@ identification on a real bench (that is an inverse crime by design). On the inde
 `test_diagnose_bench.py`."""
 
 import json
-import types
 
 import equinox as eqx
 import jax
@@ -21,9 +20,9 @@ import hdjax
 import hdjax._fit
 from hdjax import CostStop, block_covariance, fit_parameters, fit_per_experiment, identify_paper, load_dataset, write_dataset
 from hdjax._covariance import robust_covariance
-from hdjax._fit import _final_residual_and_jacobian, _stalled, _stepped_least_squares
+from hdjax._fit import _final_residual_and_jacobian, _stalled, _state_residual_and_jacobian, _stepped_least_squares
 from hdjax.fit import run_fit
-from helpers import hd2
+from helpers import hd2, host_callbacks
 
 RUNS = [
     ("constrained", 2.0, 5.0, 0.0),
@@ -160,13 +159,6 @@ def test_stall_stop_ends_a_jittery_fit():
     assert jnp.allclose(r, fn(sol.value, None)) and jnp.allclose(J, A, atol=1e-2)
 
 
-def _callbacks(jaxpr) -> int:
-    import jax.extend.core as jc
-
-    return sum(("callback" in eqn.primitive.name) + sum(_callbacks(sub) for sub in jc.jaxprs_in_params(eqn.params))
-               for eqn in jaxpr.eqns)
-
-
 @pytest.mark.parametrize("inner", [optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8), hdjax.MarquardtLM(rtol=1e-8, atol=1e-8)],
                          ids=["optimistix_lm", "marquardt_lm"])
 def test_lm_stepped_from_python_takes_optimistix_own_steps_and_holds_no_callback(inner):
@@ -185,6 +177,7 @@ def test_lm_stepped_from_python_takes_optimistix_own_steps_and_holds_no_callback
 
     lm = CostStop(inner)
     theta0, args = jnp.array([1.0, 0.2, 0.0]), (t, y)
+
     @jax.jit
     def reference(th, a):
         sol = optx.least_squares(residuals, lm, th, a, max_steps=40, throw=False)
@@ -193,7 +186,7 @@ def test_lm_stepped_from_python_takes_optimistix_own_steps_and_holds_no_callback
     value, result_ref, steps_ref, reason_ref, r_ref, J_ref = reference(theta0, args)
 
     def finish(theta, state, result, num_steps, args_):
-        return theta, result, state.reason, num_steps, *_final_residual_and_jacobian(types.SimpleNamespace(state=state))
+        return theta, result, state.reason, num_steps, *_state_residual_and_jacobian(state)
 
     run = _stepped_least_squares(residuals, lm, max_steps=40, finish=finish)
     for _ in range(2):  # the second run reuses the compiled programs
@@ -210,9 +203,9 @@ def test_lm_stepped_from_python_takes_optimistix_own_steps_and_holds_no_callback
     dynamic, static, _, _ = run.start(theta0, args)
     for program, call in ((run.start, (theta0, args)), (run.step, (theta0, dynamic, static, args))):
         assert program._cached._cache_size() == 1  # pyright: ignore[reportAttributeAccessIssue]  equinox's jit wrapper
-        assert _callbacks(eqx.filter_make_jaxpr(program)(*call)[0].jaxpr) == 0
+        assert host_callbacks(eqx.filter_make_jaxpr(program)(*call)[0].jaxpr) == 0
     with_callback = CostStop(inner, callback=lambda *_: None)
-    assert _callbacks(jax.make_jaxpr(lambda th: optx.least_squares(residuals, with_callback, th, args, max_steps=40,
+    assert host_callbacks(jax.make_jaxpr(lambda th: optx.least_squares(residuals, with_callback, th, args, max_steps=40,
                                                                   throw=False).value)(theta0).jaxpr) > 0
 
 

@@ -9,7 +9,7 @@ import pytest
 
 import hdjax
 from hdjax._solver import GAMMA, RODAS3, ROS34PW2
-from helpers import hd2, sine_experiment
+from helpers import hd2, host_callbacks, sine_experiment
 
 # ------------------------------------------------------------------------------------------------
 # Coefficients (Hairer & Wanner, Solving ODEs II, §IV.7, order conditions for Rosenbrock methods)
@@ -315,16 +315,7 @@ def test_the_simulation_holds_no_host_callback():
     """JAX writes no program with a host callback to its persistent compilation cache
     (`hdjax.use_compilation_cache`); the plant's simulation has none (diffrax checks a traced
     `dt0` with one, so the first step is set in the controller, `FirstStep`)."""
-    import jax.extend.core as jc
-
-    def callbacks(jaxpr):
-        n = 0
-        for eqn in jaxpr.eqns:
-            n += "callback" in eqn.primitive.name
-            n += sum(callbacks(sub) for sub in jc.jaxprs_in_params(eqn.params))
-        return n
-
     p, drive = hd2()
     exp = sine_experiment("free", duration=0.2)
     traced = jax.make_jaxpr(lambda p_: hdjax.simulate(p_, drive, exp).torque)(p)
-    assert callbacks(traced.jaxpr) == 0
+    assert host_callbacks(traced.jaxpr) == 0

@@ -377,10 +377,16 @@ def _stop_reason(result, reason) -> np.ndarray:
     return np.where(ok, np.asarray(STOP_REASONS)[np.asarray(reason)], "max_steps")
 
 
-def _final_residual_and_jacobian(sol):
-    """Residual and (materialised) Jacobian at `sol.value`, from the LM state (already computed there)."""
-    info = sol.state.inner.f_info
+def _state_residual_and_jacobian(state):
+    """Residual and (materialised) Jacobian at the accepted point of a `CostStop` state (already
+    computed there)."""
+    info = state.inner.f_info
     return info.residual, lx.materialise(info.jac).as_matrix()
+
+
+def _final_residual_and_jacobian(sol):
+    """Residual and (materialised) Jacobian at `sol.value`, from the LM state."""
+    return _state_residual_and_jacobian(sol.state)
 
 
 def _lm_objective(residuals):
@@ -587,9 +593,10 @@ def fit_per_experiment(
     # several devices: each fits its share of the experiments (masked dummies pad the batch; their
     # slots are off, so they hold still and are dropped below)
     mesh = experiment_mesh() if jax.device_count() > 1 and isinstance(solver, MarquardtLM) else None
-    chunk = _per_experiment_chunk(n_exp, 1 if mesh is None else mesh.size, experiment_batching(fixed_cost=is_fixed_cost(simulator)))
+    n_devices = 1 if mesh is None else mesh.size
+    chunk = _per_experiment_chunk(n_exp, n_devices, experiment_batching(fixed_cost=is_fixed_cost(simulator)))
     run = _cached(_per_experiment_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh)
-    order = _interleaved(n_exp, 1 if mesh is None else mesh.size, chunk)
+    order = _interleaved(n_exp, n_devices, chunk)
     parts = []
     with count_progress("per-experiment LM fits", n_exp, unit="experiments") as done:
         for lo in range(0, n_exp, chunk):
@@ -780,8 +787,7 @@ def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rto
         return r.reshape(-1)
 
     def finish(theta, state, result, num_steps, args):
-        info = state.inner.f_info
-        r, J = info.residual, lx.materialise(info.jac).as_matrix()
+        r, J = _state_residual_and_jacobian(state)
         if mesh is not None:  # every process can read the result (multi-host)
             r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
         return theta, result, state.reason, num_steps, r, J
