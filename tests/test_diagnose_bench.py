@@ -94,14 +94,9 @@ def _summary(d) -> str:
     return "\n".join(out)
 
 
-def _marks(name) -> list:
-    """Strict xfail for `NOT_YET`; the full-size cases' run time (`cost`, seconds on the 2-core machine,
-    2026-12-02: 460 s and 140 s; a small case 50-250 s) so that the suite starts them first."""
-    marks = [pytest.mark.xfail(reason=NOT_YET[name], strict=True)] if name in NOT_YET else []
-    return marks + ([pytest.mark.cost(300)] if name in FULL_SIZE else [])
-
-
-@pytest.mark.parametrize("name", [pytest.param(n, marks=_marks(n)) for n in EFFECTS])
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.xfail(reason=NOT_YET[n], strict=True)) if n in NOT_YET else n for n in EFFECTS]
+)
 def test_hidden_effect_on_the_independent_bench_is_named_alone(name, tmp_path):
     i = EFFECTS.index(name)
     d = _run(tmp_path, {name: _spec(name)}, seed=(900 if name in FULL_SIZE else 700) + i, drive=("hd1", "hd2")[i % 2],
