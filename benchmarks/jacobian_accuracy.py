@@ -58,7 +58,7 @@ CASES = {
     "torque_sensor_ripple [2]": lambda x: Effects().with_periodic("torque_sensor_ripple", 2, 0.5 * (1 + x[1])),
     "cogging [2]": lambda x: Effects().with_periodic("cogging", 2, 2e-3 * (1 + x[1])),
     "sensor_bandwidth": lambda x: Effects().with_values("sensor_bandwidth", torque_lag=3e-4 * (1 + x[1]), velocity_lag=5e-4),
-    "thermal_drift": lambda x: Effects(tau=600.0).with_values("thermal_drift", beta=0.01 * (1 + x[1])),
+    "thermal_drift": lambda x: Effects().with_values("thermal_drift", tau=600.0, beta=0.01 * (1 + x[1])),
     "nonlinear_stiffness": lambda x: Effects().with_values("nonlinear_stiffness", K3=1e3 * (1 + x[1])),
 }
 RTOLS = (1e-4, 1e-5, 1e-6)

@@ -285,7 +285,7 @@ def test_an_effect_fitted_with_the_sign_its_physics_forbids_is_not_that_effect()
     lost motion (|backlash|) and periodic terms have no sign. Every signed effect of SPEC §4 is covered."""
     from hdjax._diagnose import PHYSICAL_SIGN, _Column, _physical_sign
 
-    cols = [_Column("kinematic_error", "kinematic_error_sin", 0, 1e-5, 0.0), _Column("thermal_drift", "beta", None, 1.0, 0.0),
+    cols = [_Column("kinematic_error", "sin", 0, 1e-5, 0.0), _Column("thermal_drift", "beta", None, 1.0, 0.0),
             _Column("input_delay", "delay", None, 1e-3, 0.0), _Column("lost_motion", "backlash", None, 1e-5, 1e-9),
             _Column("nonlinear_stiffness", "K3", None, 2e8, 0.0)]
     n_base = 2

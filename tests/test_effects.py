@@ -14,7 +14,7 @@ def test_with_periodic_and_with_values_switch_effects_on():
     assert e.active == {"torque_sensor_ripple", "nonlinear_stiffness"}
     orders, amp, phase = e.amplitudes("torque_sensor_ripple")
     np.testing.assert_allclose([float(amp[1]), float(phase[1])], [1.5, 0.7], rtol=1e-12)
-    assert float(e.K3) == 1e6
+    assert float(e.nonlinear_stiffness.K3) == 1e6
 
 
 def test_sensor_ripple_changes_measured_torque_only():
@@ -159,14 +159,14 @@ def test_presliding_friction_converges_as_its_distance_shrinks():
 
 
 def test_presliding_law_is_the_friction_only_fits_dahl_law():
-    """The plant's `presliding_friction` state (`hdjax._effects.presliding_rate`, an ODE) and the
+    """The plant's `presliding_friction` state (`hdjax._effects.PreslidingFriction.rate`, an ODE) and the
     friction-only fits' Dahl state (`hdjax._friction.dahl_recurrence`, the exact update for a
     velocity held over each sample) are one law: integrated along the same velocity record (a 2 Hz
     sine through zero, 10 kHz) they agree to 1 % of the state's range once |ω| exceeds 5 smoothing
     scales (below that the plant smooths |ω| as ω·tanh(ω/v_s))."""
     import diffrax as dfx
 
-    from hdjax._effects import PRESLIDING_DISTANCE, presliding_rate
+    from hdjax._effects import PRESLIDING_DISTANCE
     from hdjax._friction import dahl_recurrence
 
     vs = 1e-3
@@ -175,7 +175,7 @@ def test_presliding_law_is_the_friction_only_fits_dahl_law():
     eff = hdjax.Effects(active=frozenset({"presliding_friction"}))
     vel = dfx.LinearInterpolation(ts=jnp.asarray(t), ys=jnp.asarray(v))
     sol = dfx.diffeqsolve(
-        dfx.ODETerm(lambda tt, s, _: presliding_rate(s, vel.evaluate(tt), eff, vs)), dfx.Kvaerno5(), t0=0.0,
+        dfx.ODETerm(lambda tt, s, _: eff.presliding_friction.rate(s, vel.evaluate(tt), vs)), dfx.Kvaerno5(), t0=0.0,
         t1=float(t[-1]), dt0=1e-5, y0=jnp.tanh(v[0] / vs), saveat=dfx.SaveAt(ts=jnp.asarray(t)),
         stepsize_controller=dfx.PIDController(rtol=1e-8, atol=1e-10), max_steps=200_000,
     )

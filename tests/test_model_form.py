@@ -155,9 +155,14 @@ def test_model_form_derivatives_at_zero_match_finite_differences():
 
 
 def eqx_set(effects, field, value):
+    """`effects` with the parameter `field` set, in the term that has a field of that name (the
+    scalar field names are unique over the terms); the active set is left as it is."""
     import equinox as eqx
 
-    return eqx.tree_at(lambda e: getattr(e, field), effects, jnp.asarray(value, dtype=float))
+    from hdjax._effects import SCALAR_FIELDS
+
+    owner = next(name for name, fields in SCALAR_FIELDS.items() if field in fields)
+    return eqx.tree_at(lambda e: getattr(e.term(owner), field), effects, jnp.asarray(value, dtype=float))
 
 
 def test_viscous_law_converges_to_the_power_law_as_its_scale_shrinks():

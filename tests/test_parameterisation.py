@@ -59,10 +59,10 @@ def test_one_compiled_program_serves_every_scale():
 
 
 def test_effects_and_the_paper_parameters_use_it():
-    e = parameterisation((Entry("cogging_sin", 8), Entry("K3")), scale=np.full(9, 2.0), offset=np.r_[np.zeros(8), 1.0])
+    e = parameterisation((Entry("cogging.sin", 8), Entry("nonlinear_stiffness.K3")), scale=np.full(9, 2.0), offset=np.r_[np.zeros(8), 1.0])
     q = e.to_model(jnp.arange(9.0), Effects(active=frozenset({"cogging", "nonlinear_stiffness"})))
-    np.testing.assert_allclose(np.asarray(q.cogging_sin), 2.0 * np.arange(8.0))
-    assert float(q.K3) == 17.0 and q.active == frozenset({"cogging", "nonlinear_stiffness"})
+    np.testing.assert_allclose(np.asarray(q.cogging.sin), 2.0 * np.arange(8.0))
+    assert float(q.nonlinear_stiffness.K3) == 17.0 and q.active == frozenset({"cogging", "nonlinear_stiffness"})
     pm = make_parameter_map(P, ("alpha", "K1", "Tssp1"))
     assert isinstance(pm, Parameterisation) and pm.fields == ("alpha", "K1", "Tssp1")
     np.testing.assert_allclose(pm.to_vector(P), [np.log((0.5 - 0.05) / (1.5 - 0.5)), np.log(5000.0), -1.0], rtol=1e-14)

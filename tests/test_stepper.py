@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import hdjax
+from hdjax._effects import RateIndependentHysteresis
 from helpers import hd2, sine_experiment
 
 jax.config.update("jax_enable_x64", True)
@@ -102,7 +103,8 @@ def test_every_root_converges_with_the_diagnosis_terms_switched_on():
     for mode, amp in [("constrained", 0.15), ("constrained", 1.0), ("free", 0.3)]:
         exp = sine_experiment(mode, amplitude=amp, duration=0.5)
         for name in ("rate_independent_hysteresis", "low_speed_friction"):
-            tr = _sim(p, drive, exp, 4, effects=hdjax.Effects(active=frozenset([name]), sigma=2e-5))
+            eff = hdjax.Effects(active=frozenset([name]), rate_independent_hysteresis=RateIndependentHysteresis(sigma=2e-5))
+            tr = _sim(p, drive, exp, 4, effects=eff)
             assert bool(tr.success), (mode, amp, name)
             assert np.all(np.isfinite(np.asarray(tr.torque))), (mode, amp, name)
 

@@ -16,9 +16,7 @@ import json
 import math
 import pathlib
 
-import numpy as np
-
-from ._effects import PERIODIC, SCALAR_FIELDS, Effects
+from ._effects import Effects
 from ._model import PARAMETER_NAMES, Parameters
 
 
@@ -84,28 +82,12 @@ def read_extended_model(path) -> tuple[Parameters, Effects]:
 
 
 def effects_to_dict(effects: Effects) -> dict:
-    """Plain-number description of the active effects (periodic: orders, amplitudes, phases)."""
-    out = {}
-    for name in sorted(effects.active):
-        if name in PERIODIC:
-            k, a, ph = effects.amplitudes(name)
-            out[name] = {"orders": [int(x) for x in k], "amplitudes": np.asarray(a).tolist(), "phases": np.asarray(ph).tolist()}
-        else:
-            out[name] = {f: float(getattr(effects, f)) for f in SCALAR_FIELDS[name]}
-    return out
+    """Plain-number description of the active effects (periodic: orders, amplitudes, phases);
+    `Effects.to_dict`, each term serialising itself."""
+    return effects.to_dict()
 
 
 def effects_from_dict(d: dict | None) -> Effects:
-    """`Effects` from the plain-number description (`effects_to_dict`, or a bench's `truth.yaml`)."""
-    eff = Effects()
-    for name, spec in (d or {}).items():
-        if name in PERIODIC:
-            for k, a, ph in zip(spec["orders"], spec["amplitudes"], spec["phases"]):
-                if a:
-                    eff = eff.with_periodic(name, int(k), float(a), float(ph))
-        elif name in SCALAR_FIELDS:
-            eff = eff.with_values(name, **{f: float(spec[f]) for f in SCALAR_FIELDS[name] if f in spec})
-        else:
-            raise ValueError(f"unknown effect {name!r} in an effects description; known: "
-                             f"{list(PERIODIC) + list(SCALAR_FIELDS)}.")
-    return eff
+    """`Effects` from the plain-number description (`effects_to_dict`, or a bench's `truth.yaml`);
+    `Effects.from_dict`."""
+    return Effects.from_dict(d)

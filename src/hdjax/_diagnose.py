@@ -112,6 +112,7 @@ transfer to held-out experiments as well as the right one.
 import dataclasses
 import math
 import time
+import typing
 
 import diffrax as dfx
 import equinox as eqx
@@ -131,7 +132,8 @@ from ._effects import (
     MODEL_FORM_NAMES,
     PERIODIC,
     PERIODIC_UNITS,
-    SCALAR,
+    TERMS,
+    AbstractPeriodicTerm,
     Effects,
 )
 from ._evidence import (
@@ -170,45 +172,31 @@ SCREENED_EFFECTS = tuple(n for n in EFFECT_NAMES if n not in NOT_SCREENED)
 @dataclasses.dataclass(frozen=True)
 class _Column:
     effect: str
-    field: str
-    index: int | None
+    field: str  # the term's field (`"K3"`; a periodic term's `"sin"` / `"cos"`)
+    index: int | None  # the order − 1 of a periodic term's coefficient, None for a scalar field
     scale: float
     start: float
 
+    @property
+    def path(self) -> str:
+        """The field's path in `Effects` (`"nonlinear_stiffness.K3"`)."""
+        return f"{self.effect}.{self.field}"
+
 
 def _all_columns(ctx: dict) -> list[_Column]:
-    """Every effect parameter the plant can take, in a fixed order (all orders of every periodic
-    effect), each with a scale (the unit of the fitted coefficient) and a start value. The
-    simulation and the Jacobian are compiled once for this full vector; a round fits a subset."""
-    scale = {
-        "kinematic_error": ctx["torque_noise"] / ctx["K1"],
-        "torque_sensor_ripple": ctx["torque_noise"],
-        "cogging": ctx["coulomb"],
-        "position_dependent_friction": 0.1,
-    }
+    """Every effect parameter the plant can take, in `TERMS`' order (all orders of every periodic
+    effect; `NOT_SCREENED` left out), each with the scale (the unit of the fitted coefficient) and
+    start value its term gives (`AbstractTerm.fitted`). The simulation and the Jacobian are compiled
+    once for this full vector; a round fits a subset."""
     cols = []
-    for name in PERIODIC:
-        for part in ("sin", "cos"):
-            cols += [_Column(name, f"{name}_{part}", k, scale[name], 0.0) for k in range(MAX_ORDER)]
-    tw = ctx["torsion"]
-    cols += [
-        _Column("nonlinear_stiffness", "K3", None, ctx["K1"] / tw**2, 0.0),
-        _Column("lost_motion", "backlash", None, 0.01 * tw, 1e-9),
-        _Column("load_dependent_friction", "mu", None, 0.1, 0.0),
-        _Column("thermal_drift", "beta", None, 1.0, 0.0),
-        _Column("input_delay", "delay", None, ctx["dt"], 0.0),
-        _Column("rate_independent_hysteresis", "Th", None, 0.03 * ctx["torque_max"], 0.0),
-        # SPEC §4b base-model assumptions (model_form), fitted like effects
-        _Column("low_speed_friction", "friction_scale", None, 1.0, 0.0),
-        _Column("low_speed_friction", "stribeck_scale", None, 1.0, 0.0),
-        _Column("sensor_offset", "torque_offset", None, ctx["torque_noise"], 0.0),
-        _Column("sensor_offset", "velocity_offset", None, ctx["velocity_noise"], 0.0),
-        _Column("sensor_offset", "current_offset", None, ctx["current_noise"], 0.0),
-        _Column("sensor_bandwidth", "torque_lag", None, ctx["dt"], 0.0),
-        _Column("sensor_bandwidth", "velocity_lag", None, ctx["dt"], 0.0),
-        _Column("input_between_samples", "reconstruction", None, 1.0, 0.0),
-        _Column("viscous_friction_law", "viscous_exponent", None, 1.0, 0.0),
-    ]
+    for name, term in TERMS.items():
+        if name in NOT_SCREENED:
+            continue
+        for f in term.fitted(ctx):
+            if name in PERIODIC:
+                cols += [_Column(name, f.field, k, f.scale, f.start) for k in range(MAX_ORDER)]
+            else:
+                cols.append(_Column(name, f.field, None, f.scale, f.start))
     return cols
 
 
@@ -224,7 +212,7 @@ def _effect_map(cols: list[_Column]) -> Parameterisation:
     entries, j = [], 0
     while j < len(cols):
         c = cols[j]
-        entries.append(Entry(c.field) if c.index is None else Entry(c.field, MAX_ORDER))
+        entries.append(Entry(c.path) if c.index is None else Entry(c.path, MAX_ORDER))
         j += 1 if c.index is None else MAX_ORDER
     return parameterisation(entries, np.array([c.scale for c in cols]), np.array([c.start for c in cols]))
 
@@ -235,12 +223,9 @@ def _apply(effects: Effects, cols: list[_Column], values) -> Effects:
 
 
 def _fixed_effect_settings(ctx: dict, active) -> Effects:
-    """Effects with the shape parameters that are not fitted set from the data: thermal time
-    constant = half the session span (at least 60 s), Dahl σ = 2 % of the largest torsion, the
-    viscous law's reference speed = the free tests' RMS wave-generator speed (with eq. 9's viscous
-    coefficients refitted beside it, this reference only sets what they mean, not the law)."""
-    return Effects(active=frozenset(active), tau=max(ctx["session_span"] / 2.0, 60.0), sigma=0.02 * ctx["torsion"],
-                   viscous_reference=ctx["wave_generator_speed"])
+    """Effects with the shape parameters that are not fitted set from the data by each term
+    (`AbstractTerm.from_data`: thermal τ, Dahl σ, the viscous law's reference speed), `active` on."""
+    return Effects.from_data(ctx, active)
 
 
 @dataclasses.dataclass
@@ -1197,7 +1182,7 @@ def _describe_items(findings: list[dict], form_items: list[dict], final_effects:
                     orders_of: dict) -> None:
     """Complete the findings and model_form items with their fitted values, orders and evidence text."""
     for f in form_items:
-        f["adjustment"] = {k: float(getattr(final_effects, k)) for k in MODEL_FORM[f["assumption"]]}
+        f["adjustment"] = final_effects.term(f["assumption"]).to_dict()
         f["adjustment_units"] = {k: FIELD_UNITS[k] for k in f["adjustment"]}
         f["evidence"] = _evidence_text(f["assumption"], evidence, rounds[f.pop("_round")], f)
     for f in findings:
@@ -1659,7 +1644,7 @@ def diagnose(
 def _describe(effects: Effects, name: str, orders):
     if name in PERIODIC:
         k, amp, ph = effects.amplitudes(name)
-        letter = {"kinematic_error": "a", "torque_sensor_ripple": "b", "cogging": "c", "position_dependent_friction": "eps"}[name]
+        letter = typing.cast(AbstractPeriodicTerm, effects.term(name)).letter
         params = {}
         for o in orders:
             params[f"{letter}{o}"] = float(amp[o - 1])
@@ -1668,7 +1653,7 @@ def _describe(effects: Effects, name: str, orders):
         top = max(params[f"{letter}{o}"] for o in orders)
         orders = [o for o in orders if params[f"{letter}{o}"] >= 0.2 * top]
         return params, orders
-    params = {f: float(getattr(effects, f)) for f in SCALAR[name]}
+    params = effects.term(name).to_dict()
     return params, None
 
 

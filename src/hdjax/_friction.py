@@ -137,7 +137,7 @@ def dahl_recurrence(distance, v, t, scale, *, target=None, s0=None):
     """The presliding Dahl recurrence $s_n = a_n s_{n-1} + (1 - a_n) b_n$, $a_n = e^{-|\\omega_n| h_n/\\delta}$,
     and its derivative in $\\delta$, in one scan. The target $b$ is sign(ω) smoothed at `scale`
     unless given; the state before the first sample is `s0` (default $b_0$: the steady state).
-    This is `_effects.dahl_rate`'s law, $\\dot s = (|\\omega|/\\delta)(\\mathrm{sign}\\,\\omega - s)$,
+    This is `_effects.PreslidingFriction.rate`'s law, $\\dot s = (|\\omega|/\\delta)(\\mathrm{sign}\\,\\omega - s)$,
     solved exactly for a velocity held over each sample interval."""
     h = jnp.diff(t, prepend=t[:1])
     target = smooth_sign(v, scale) if target is None else target

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._effects import Effects, dahl_rate, presliding_rate, stiffness_torque, thermal_factor, viscous_law_factor
+from ._effects import Effects, stiffness_torque
 from ._experiment import Experiment
 from ._friction import STATE_SCALE
 from ._model import Drive, Parameters, Smoothing, compliance_torque, friction_parts
@@ -235,7 +235,7 @@ def _friction_direction(wm, y, effects: Effects, smoothing: Smoothing):
     k = _presliding_index(effects)
     if k is None:
         return None
-    w = effects.presliding
+    w = effects.presliding_friction.presliding
     sg, up = smooth_sign(wm, smoothing.velocity_scale), smooth_step(wm, smoothing.velocity_scale)
     return (1.0 - w) * sg + w * y[k], (1.0 - w) * up + w * smooth_step(y[k], STATE_SCALE)
 
@@ -245,14 +245,14 @@ def _friction(p: Parameters, drive: Drive, wm, theta_m, T, t_session, effects: E
     """Eq. 9 with the friction extensions of `effects` (N·m); `direction` as in `friction_basis`."""
     viscous, coulomb, stribeck = friction_parts(p, wm, smoothing, direction=direction)
     if "thermal_drift" in effects.active:
-        viscous = viscous * thermal_factor(effects.beta, effects.tau, t_session)
+        viscous = viscous * effects.thermal_drift.factor(t_session)
     if "viscous_friction_law" in effects.active:
-        viscous = viscous * viscous_law_factor(wm, effects.viscous_exponent, effects.viscous_reference)
+        viscous = viscous * effects.viscous_friction_law.factor(wm)
     if "position_dependent_friction" in effects.active:
         coulomb = coulomb * (1.0 + effects.periodic("position_dependent_friction", theta_m))
     if "load_dependent_friction" in effects.active:
         sg = smooth_sign(wm, smoothing.velocity_scale)
-        coulomb = coulomb + effects.mu * jnp.sqrt(T * T + 1e-6) / drive.gear_ratio * sg
+        coulomb = coulomb + effects.load_dependent_friction.mu * jnp.sqrt(T * T + 1e-6) / drive.gear_ratio * sg
     return viscous + coulomb + stribeck
 
 
@@ -268,7 +268,7 @@ def _outputs(p, drive, y, geometry, effects: Effects, smoothing: Smoothing):
         rate, p.alpha, smoothing.torsion_rate_scale
     )
     if "rate_independent_hysteresis" in effects.active:
-        T = T + effects.Th * y[4]
+        T = T + effects.rate_independent_hysteresis.Th * y[4]
     return th_m, torsion, rate, T
 
 
@@ -278,10 +278,10 @@ def _low_speed_friction(p: Parameters, effects: Effects, smoothing: Smoothing):
     if "low_speed_friction" not in effects.active:
         return p, smoothing
     smoothing = Smoothing(
-        velocity_scale=smoothing.velocity_scale * jnp.exp(effects.friction_scale),  # pyright: ignore[reportArgumentType]  a traced scale is a valid leaf
+        velocity_scale=smoothing.velocity_scale * jnp.exp(effects.low_speed_friction.friction_scale),  # pyright: ignore[reportArgumentType]  a traced scale is a valid leaf
         torsion_rate_scale=smoothing.torsion_rate_scale,
     )
-    return eqx.tree_at(lambda q: q.Tss2, p, p.Tss2 * jnp.exp(effects.stribeck_scale)), smoothing
+    return eqx.tree_at(lambda q: q.Tss2, p, p.Tss2 * jnp.exp(effects.low_speed_friction.stribeck_scale)), smoothing
 
 
 def _first_order_lag(x: Float[Array, " time"], tau, dt) -> Float[Array, " time"]:
@@ -310,7 +310,7 @@ def _vector_field(t, y, args, *, stiff_only: bool = False):
         drive_torque = jnp.zeros_like(wm)
         Tf = sum(friction_parts(p, wm, smoothing, direction=direction))
     else:
-        i = current.evaluate(t - effects.delay) if "input_delay" in effects.active else current.evaluate(t)
+        i = current.evaluate(t - effects.input_delay.delay) if "input_delay" in effects.active else current.evaluate(t)
         drive_torque = drive.torque_constant * i + effects.periodic("cogging", th_m)
         Tf = _friction(p, drive, wm, th_m, T, start_time + t, effects, smoothing, direction)
     dwm = (drive_torque - T / drive.gear_ratio - Tf) / p.Jeff
@@ -318,10 +318,10 @@ def _vector_field(t, y, args, *, stiff_only: bool = False):
     zero = jnp.zeros_like(wm)
     dy = (zero, dwm, zero, dwo) if stiff_only else (wm / drive.gear_ratio - wo, dwm, wo, dwo)
     if "rate_independent_hysteresis" in effects.active:
-        dy = dy + (dahl_rate(y[4], rate, effects, smoothing.torsion_rate_scale),)
+        dy = dy + (effects.rate_independent_hysteresis.rate(y[4], rate, smoothing.torsion_rate_scale),)
     k = _presliding_index(effects)
     if k is not None:
-        dy = dy + (presliding_rate(y[k], wm, effects, smoothing.velocity_scale),)
+        dy = dy + (effects.presliding_friction.rate(y[k], wm, smoothing.velocity_scale),)
     return dy
 
 
@@ -366,7 +366,7 @@ def _invert_stiffness(K1, elastic_torque, effects: Effects, *, iterations: int =
     inverse Tk/K1 is kept."""
     target = jnp.asarray(elastic_torque)
     x_lin = target / K1
-    d = jnp.abs(effects.backlash) if "lost_motion" in effects.active else jnp.zeros_like(x_lin)
+    d = jnp.abs(effects.lost_motion.backlash) if "lost_motion" in effects.active else jnp.zeros_like(x_lin)
     width = jax.lax.stop_gradient(jnp.abs(x_lin) + d + 1e-12)
     lo0 = jax.lax.stop_gradient(jnp.minimum(x_lin, 0.0)) - width
     hi0 = jax.lax.stop_gradient(jnp.maximum(x_lin, 0.0)) + width
@@ -398,7 +398,7 @@ def _initial_state_with_effects(p, drive, exp, effects, simulator):
         init_exp = eqx.tree_at(
             lambda e: (e.torque, e.motor_velocity),
             exp,
-            (exp.torque - effects.torque_offset, exp.motor_velocity - effects.velocity_offset),
+            (exp.torque - effects.sensor_offset.torque_offset, exp.motor_velocity - effects.sensor_offset.velocity_offset),
         )
     else:
         init_exp = exp
@@ -448,7 +448,7 @@ def _presliding_start(p: Parameters, drive: Drive, exp: Experiment, wm0, effects
     p_dyn, smoothing = _low_speed_friction(p, effects, simulator.smoothing)
     net = drive.torque_constant * i0 - T0 / drive.gear_ratio
     breakaway = jnp.where(net >= 0, p_dyn.Tsp + p_dyn.Tssp1, p_dyn.Tsn + p_dyn.Tssn1)
-    w = effects.presliding
+    w = effects.presliding_friction.presliding
     # (1 − w)·sign(0) + w·s = s·w must carry net/breakaway at rest
     held = jnp.clip(net / jnp.where(jnp.abs(breakaway) > 0, breakaway, 1.0) / jnp.where(jnp.abs(w) > 1e-12, w, 1.0), -1.0, 1.0)
     moving = smooth_sign(wm0, smoothing.velocity_scale)
@@ -510,9 +510,9 @@ def _simulate_one(p: Parameters, drive: Drive, exp: Experiment, effects: Effects
     t_last = exp.time[jnp.maximum(n_valid - 1, 1)]
     dt = (t_last - exp.time[0]) / jnp.maximum(n_valid - 1, 1).astype(t_last.dtype)
     # recorded current = true current + offset (SPEC §4b `sensor_offset`), removed once per solve
-    true_current = exp.current - effects.current_offset if "sensor_offset" in effects.active else exp.current
+    true_current = exp.current - effects.sensor_offset.current_offset if "sensor_offset" in effects.active else exp.current
     if "input_between_samples" in effects.active:
-        current = UniformCubicBlendInput(exp.time[0], dt, true_current, jnp.asarray(effects.reconstruction))
+        current = UniformCubicBlendInput(exp.time[0], dt, true_current, jnp.asarray(effects.input_between_samples.reconstruction))
     else:
         current = UniformLinearInput(exp.time[0], dt, true_current)
     if isinstance(simulator.solver, VelocityImplicit):
@@ -584,11 +584,11 @@ def _measured(T, wm, th_m, th_o, wo, torsion, dt, effects: Effects, *, success, 
     if "sensor_bandwidth" in effects.active:
         # smooth through τ = 0 (where the fit starts); a negative τ (a lead, |a| < 1) is allowed
         # down to −0.45 Δt so that the map stays smooth there and stable everywhere
-        measured_T = _first_order_lag(measured_T, jnp.maximum(effects.torque_lag, -0.45 * dt), dt)
-        measured_w = _first_order_lag(measured_w, jnp.maximum(effects.velocity_lag, -0.45 * dt), dt)
+        measured_T = _first_order_lag(measured_T, jnp.maximum(effects.sensor_bandwidth.torque_lag, -0.45 * dt), dt)
+        measured_w = _first_order_lag(measured_w, jnp.maximum(effects.sensor_bandwidth.velocity_lag, -0.45 * dt), dt)
     if "sensor_offset" in effects.active:
-        measured_T = measured_T + effects.torque_offset
-        measured_w = measured_w + effects.velocity_offset
+        measured_T = measured_T + effects.sensor_offset.torque_offset
+        measured_w = measured_w + effects.sensor_offset.velocity_offset
     return Trajectory(
         torque=measured_T,
         motor_velocity=measured_w,

@@ -40,7 +40,7 @@ import equinox as eqx
 import numpy as np
 
 from ._dataset_write import write_dataset
-from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, PRESLIDING_DISTANCE, SCALAR, THERMAL_TAU, Effects
+from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, PRESLIDING_DISTANCE, THERMAL_TAU, Effects
 from ._experiment import Experiment, make_experiment, stack_experiments
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
 from ._plant import Simulator, simulate_batch
@@ -804,20 +804,20 @@ def hide_effect(
     if name in PERIODIC:
         return _with_periodic(base, name, int(order), a, float(phase))
     if name == "nonlinear_stiffness":
-        return _with_values(base, name, K3=a)
+        return base.with_values(name, K3=a)
     if name == "lost_motion":
-        return _with_values(base, name, backlash=a)
+        return base.with_values(name, backlash=a)
     if name == "load_dependent_friction":
-        return _with_values(base, name, mu=a)
+        return base.with_values(name, mu=a)
     if name == "thermal_drift":
-        return _with_values(base, name, beta=a, tau=THERMAL_TAU if tau is None else float(tau))
+        return base.with_values(name, beta=a, tau=THERMAL_TAU if tau is None else float(tau))
     if name == "input_delay":
-        return _with_values(base, name, delay=a)
+        return base.with_values(name, delay=a)
     if name == "presliding_friction":
-        return _with_values(base, name, presliding=a)
+        return base.with_values(name, presliding=a)
     if name == "rate_independent_hysteresis":
         s = 0.02 * station.rated_torque / float(station.truth.K1) if sigma is None else float(sigma)
-        return _with_values(base, name, Th=a, sigma=s)
+        return base.with_values(name, Th=a, sigma=s)
     raise AssertionError(name)  # pragma: no cover
 
 
@@ -829,11 +829,6 @@ def _with_periodic(base: Effects, name: str, order: int, amplitude: float, phase
     return base.with_periodic(name, order, amplitude, phase)
 
 
-def _with_values(base: Effects, name: str, **values) -> Effects:
-    """`base` with the scalar parameters of effect `name` set and the effect switched on."""
-    return dataclasses.replace(base, active=frozenset(base.active | {name}), **values)
-
-
 def describe_effects(effects: Effects) -> dict[str, dict]:
     """The active effects in plain numbers (for `truth.yaml`).
 
@@ -841,20 +836,14 @@ def describe_effects(effects: Effects) -> dict[str, dict]:
     the wave-generator angle, rad) plus the `unit` of the amplitudes; scalar effects: their
     parameters (`hdjax._effects.SCALAR`) plus `unit`."""
     out: dict[str, dict] = {}
-    for name in sorted(effects.active):
+    for name, d in effects.to_dict().items():
         if name in PERIODIC:
-            k, amp, ph = (np.asarray(v) for v in effects.amplitudes(name))
-            keep = amp > 0
-            out[name] = {
-                "form": "a_k*sin(k*theta_m + phi_k)",
-                "orders": [int(v) for v in k[keep]],
-                "amplitudes": [float(v) for v in amp[keep]],
-                "phases": [float(v) for v in ph[keep]],
-                "unit": EFFECT_UNITS[name].split(" (")[0],
-            }
+            keep = [a > 0 for a in d["amplitudes"]]
+            out[name] = {"form": "a_k*sin(k*theta_m + phi_k)",
+                         **{k: [v for v, on in zip(d[k], keep) if on] for k in ("orders", "amplitudes", "phases")},
+                         "unit": EFFECT_UNITS[name].split(" (")[0]}
         else:
-            out[name] = {f: float(getattr(effects, f)) for f in SCALAR[name]}
-            out[name]["unit"] = EFFECT_UNITS[name]
+            out[name] = {**d, "unit": EFFECT_UNITS[name]}
     return out
 
 

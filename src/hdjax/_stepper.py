@@ -113,8 +113,8 @@ def _end_state(s, P):
         # exact: Dahl's law is rate independent, z follows the torsion increment of the step
         d = tor1 - P["tor0"]
         sd = jnp.sign(d)
-        z1 = sd - (sd - P["z0"]) * jnp.exp(-jnp.abs(d) / jnp.abs(eff.sigma))
-        Tz = eff.Th * z1
+        z1 = sd - (sd - P["z0"]) * jnp.exp(-jnp.abs(d) / jnp.abs(eff.rate_independent_hysteresis.sigma))
+        Tz = eff.rate_independent_hysteresis.Th * z1
     else:
         z1 = P["z0"]
         Tz = 0.0
@@ -291,7 +291,7 @@ def implicit_trajectory(
     f = exp.free
     eff = effects
     Km = drive.torque_constant
-    delay = effects.delay if "input_delay" in effects.active else 0.0
+    delay = effects.input_delay.delay if "input_delay" in effects.active else 0.0
     ke = "kinematic_error" in effects.active
 
     def theta_m(q, tho):
@@ -305,7 +305,7 @@ def implicit_trajectory(
 
     def viscous_factor(t):
         if "thermal_drift" in eff.active:
-            return 1.0 + eff.beta * jnp.exp(-(exp.start_time + t) / jnp.abs(eff.tau))
+            return eff.thermal_drift.factor(exp.start_time + t)
         return 1.0
 
     def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0):
@@ -313,7 +313,7 @@ def implicit_trajectory(
         terms (position- and load-dependent) evaluated at the predicted stage end (θ_m1, ω_m1, T1)."""
         A, wm_hist, q_hist, wo_hist, bh, fh_J = hist
         pdf = 1.0 + eff.periodic("position_dependent_friction", thm1)
-        load = (jnp.abs(eff.mu) * jnp.sqrt(T1 * T1 + 1e-6) / N
+        load = (jnp.abs(eff.load_dependent_friction.mu) * jnp.sqrt(T1 * T1 + 1e-6) / N
                 if "load_dependent_friction" in eff.active else 0.0)
         P: dict[str, Any] = dict(
             alpha=p.alpha, K1=p.K1, Tst=p.Tst, N=N, A=A, bh=bh, fh_J=fh_J,
