@@ -36,10 +36,12 @@ from ._data import Dataset as Dataset, DatasetError as DatasetError, load_config
 from ._dataset_write import write_dataset as write_dataset
 from ._diagnose import Diagnosis as Diagnosis, diagnose as diagnose_effects  # noqa: F401 (public alias)
 from ._effects import (
+    EFFECT_NAMES as EFFECT_NAMES,
+    MAX_ORDER as MAX_ORDER,
+    TERMS as TERMS,
     AbstractPeriodicTerm as AbstractPeriodicTerm,
     AbstractTerm as AbstractTerm,
     Cogging as Cogging,
-    EFFECT_NAMES as EFFECT_NAMES,
     Effects as Effects,
     InputBetweenSamples as InputBetweenSamples,
     InputDelay as InputDelay,
@@ -47,14 +49,12 @@ from ._effects import (
     LoadDependentFriction as LoadDependentFriction,
     LostMotion as LostMotion,
     LowSpeedFriction as LowSpeedFriction,
-    MAX_ORDER as MAX_ORDER,
     NonlinearStiffness as NonlinearStiffness,
     PositionDependentFriction as PositionDependentFriction,
     PreslidingFriction as PreslidingFriction,
     RateIndependentHysteresis as RateIndependentHysteresis,
     SensorBandwidth as SensorBandwidth,
     SensorOffset as SensorOffset,
-    TERMS as TERMS,
     ThermalDrift as ThermalDrift,
     TorqueSensorRipple as TorqueSensorRipple,
     ViscousFrictionLaw as ViscousFrictionLaw,
