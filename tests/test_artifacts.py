@@ -2,6 +2,7 @@
 `sensitivity` and `tune` read them, and the plain-number form of `Effects`."""
 
 import json
+import pathlib
 
 import numpy as np
 import pytest
@@ -74,3 +75,27 @@ def test_effects_round_trip_through_the_extended_model(tmp_path):
     path.write_text(json.dumps({"parameters": {k: 1.0 for k in PARAMETER_NAMES[:3]}}))
     with pytest.raises(ValueError, match="extended_model.json"):
         read_extended_model(path)
+
+
+def test_an_output_is_replaced_whole_or_not_at_all(tmp_path):
+    """`hdjax._io`: a write that fails midway (text that cannot be encoded, a figure whose save
+    raises) leaves the previous file as it was and no temporary file beside it; a write that
+    succeeds replaces it."""
+    from hdjax._io import atomic_savefig, atomic_write_text
+
+    out = tmp_path / "fit.json"
+    atomic_write_text(out, "old\n")
+    with pytest.raises(UnicodeEncodeError):
+        atomic_write_text(out, "new \ud800\n")  # a lone surrogate: UTF-8 cannot encode it
+
+    class BrokenFigure:
+        def savefig(self, path, **_):
+            pathlib.Path(path).write_bytes(b"partial")
+            raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        atomic_savefig(BrokenFigure(), tmp_path / "fig.png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit.json"]
+    assert out.read_text() == "old\n"
+    atomic_write_text(out, "new\n")
+    assert out.read_text() == "new\n" and sorted(p.name for p in tmp_path.iterdir()) == ["fit.json"]

@@ -184,3 +184,41 @@ def test_presliding_law_is_the_friction_only_fits_dahl_law():
     moving = np.abs(v) > 5 * vs
     assert np.max(np.abs(s_ode - s_rec)[moving]) < 0.02, np.max(np.abs(s_ode - s_rec)[moving])
     assert np.min(s_ode) < -0.9 and np.max(s_ode) > 0.9  # the record reverses: the state crosses its range
+
+
+def test_every_term_carries_its_parameters_units_fit_settings_and_plain_numbers():
+    """One final Module per SPEC §4 effect and §4b assumption (`hdjax._effects.TERMS`), each with
+    its units, the loop's fitted fields (scales > 0), the shape settings it takes from the data,
+    and a plain-number form: every term switched on with values off its defaults round-trips
+    through `Effects.to_dict` / `Effects.from_dict`; a term in the wrong slot and an unknown
+    parameter are refused by name."""
+    import pytest
+
+    from hdjax._effects import EFFECT_NAMES, MODEL_FORM_NAMES, TERMS, AbstractPeriodicTerm
+
+    ctx = {"torque_noise": 0.1, "K1": 6000.0, "coulomb": 0.05, "torsion": 0.01, "torque_max": 50.0, "dt": 1e-3,
+           "velocity_noise": 0.02, "current_noise": 0.01, "session_span": 1000.0, "wave_generator_speed": 20.0}
+    assert list(TERMS) == list(EFFECT_NAMES) + list(MODEL_FORM_NAMES)
+    eff = hdjax.Effects()
+    for name, cls in TERMS.items():
+        assert cls.name == name and type(eff.term(name)) is cls
+        fitted = cls.fitted(ctx)
+        assert fitted and all(f.field in cls.parameter_names() and f.scale > 0 for f in fitted), name
+        if issubclass(cls, AbstractPeriodicTerm):
+            eff = eff.with_periodic(name, 3, 0.25, 0.4)
+        else:
+            assert set(cls.units) == set(cls.parameter_names()), name
+            eff = eff.with_values(name, **{f: 0.01 * (i + 2) for i, f in enumerate(cls.parameter_names())})
+    back = hdjax.Effects.from_dict(eff.to_dict())
+    assert back.active == eff.active == set(TERMS)
+    for a, b in zip(jax.tree_util.tree_leaves(eff), jax.tree_util.tree_leaves(back), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
+    data = hdjax.Effects.from_data(ctx, {"thermal_drift"})
+    assert data.active == {"thermal_drift"}
+    assert float(data.thermal_drift.tau) == 500.0  # half the session's span
+    assert float(data.rate_independent_hysteresis.sigma) == pytest.approx(2e-4)  # 2 % of the largest torsion
+    assert float(data.viscous_friction_law.viscous_reference) == 20.0
+    with pytest.raises(TypeError, match="cogging"):
+        hdjax.Effects(cogging=hdjax.NonlinearStiffness())  # pyright: ignore[reportArgumentType]  the refusal under test
+    with pytest.raises(ValueError, match="K4"):
+        hdjax.Effects.from_dict({"nonlinear_stiffness": {"K4": 1.0}})

@@ -11,32 +11,15 @@ $\sum_k s_k \sin(k\theta_m) + c_k \cos(k\theta_m)$, equivalent to $\sum_k a_k\si
 with $a_k = \sqrt{s_k^2 + c_k^2}$, $\varphi_k = \mathrm{atan2}(c_k, s_k)$; this form is linear in
 the coefficients, which keeps the fit well conditioned.
 
-| effect | term |
-|---|---|
-| `kinematic_error` | true torsion $\Delta\theta = \theta_m/N - \theta_o + e(\theta_m)$, $e$ periodic (rad) |
-| `torque_sensor_ripple` | measured $T$ += periodic (N·m); dynamics untouched |
-| `cogging` | motor torque $K_m i$ += periodic (N·m) |
-| `position_dependent_friction` | Coulomb part × (1 + periodic) (-) |
-| `nonlinear_stiffness` | $T_k = K_1\Delta\theta + K_3\Delta\theta^3$ ($K_3$ in N·m/rad³) |
-| `lost_motion` | $T_k = K_1\,\mathrm{deadzone}(\Delta\theta, \delta)$ ($\delta$ rad, smooth) |
-| `load_dependent_friction` | Coulomb += $\mu |T| / N$ ($\mu$ -) |
-| `thermal_drift` | viscous × $(1 + \beta e^{-t_{session}/\tau})$ |
-| `input_delay` | $K_m i(t - \tau_d)$ ($\tau_d$ s) |
-| `rate_independent_hysteresis` | Dahl state $z$: $\dot z = (\dot{\Delta\theta}/\sigma)(1 - z\,\mathrm{sign}(\dot{\Delta\theta}))$, $T$ += $T_h z$ |
-| `presliding_friction` | a Dahl friction state $s$ that a fraction $w$ (`presliding`, -) of the Coulomb and Stribeck terms follows instead of sign(ω): $\dot s = (|\omega|/\delta)(\mathrm{sign}\,\omega - s)$, $\delta$ = `PRESLIDING_DISTANCE` × $e^{\lambda_p}$ (`presliding_scale` = $\lambda_p$; rad, wave-generator side). Not screened by the dynamic diagnosis (`hdjax._diagnose`) |
-
-Base-model assumptions (SPEC §4b, `MODEL_FORM`) are loosened by the same mechanism; they are not
-physics of the drive but of the bench and of the paper model's fixed choices:
-
-| assumption | adjustment |
-|---|---|
-| `low_speed_friction` | friction regularisation scale × $e^{\lambda_s}$ (`friction_scale` = $\lambda_s$) and Stribeck velocity $T_{ss2}$ × $e^{\lambda_v}$ (`stribeck_scale` = $\lambda_v$) |
-| `sensor_offset` | measured torque += `torque_offset` (N·m), measured velocity += `velocity_offset` (rad/s), true current = recorded − `current_offset` (A) |
-| `sensor_bandwidth` | first-order low-pass of the simulated torque and velocity with time constants `torque_lag`, `velocity_lag` (s) |
-| `input_between_samples` | the current between samples: linear + $\lambda$ (Catmull–Rom cubic through the same samples − linear), `reconstruction` = $\lambda$ (-; 0 = straight lines, 1 = the cubic) |
-| `viscous_friction_law` | eq. 9's viscous torque $T_v\omega$ × $((\omega^2 + \epsilon^2)/\omega_r^2)^{(\kappa-1)/2}$, $\kappa = e^{\lambda_\kappa}$ (`viscous_exponent` = $\lambda_\kappa$; 0 = the paper's linear law), $\omega_r$ = `viscous_reference` (rad/s; set from the data, not fitted), $\epsilon$ = `VISCOUS_LAW_SCALE`. hdjax's addition to SPEC §4b's four: a drive's running torque often grows slower than linearly with speed |
+The terms, each class's docstring giving its law and units. Effects of the drive (SPEC §4):
+`KinematicError`, `TorqueSensorRipple`, `Cogging`, `PositionDependentFriction` (periodic),
+`NonlinearStiffness`, `LostMotion`, `LoadDependentFriction`, `ThermalDrift`, `InputDelay`,
+`RateIndependentHysteresis`, `PreslidingFriction` (not screened by the dynamic diagnosis).
+Base-model assumptions (SPEC §4b, `MODEL_FORM`), not physics of the drive but of the bench and of
+the paper model's fixed choices, loosened by the same mechanism: `LowSpeedFriction`,
+`SensorOffset`, `SensorBandwidth`, `InputBetweenSamples`, `ViscousFrictionLaw` (hdjax's addition
+to SPEC §4b's four).
 """
-
 
 import abc
 import collections.abc
@@ -134,14 +117,15 @@ class AbstractTerm(eqx.Module):
 
     A term is either a SPEC §4 effect of the drive (`kind` = "effect") or a SPEC §4b assumption of
     the base model that the diagnosis may loosen (`kind` = "model_form"). Subclasses are final; they
-    declare `name` (the SPEC name), `kind`, `units` (per field), `magnitude` (the field that says how
-    large the term is, for `hdjax.rig.hide_effect`, or None) and, where the loop fits them,
+    declare `name` (the SPEC name), `kind`, `units` (per field), `magnitude_field` (the field that
+    says how large a scalar effect is, set by `hdjax.rig.hide_effect`; None elsewhere) and, where the loop fits them,
     `fitted(ctx)`; `from_data(ctx)` sets the shape parameters that are not fitted.
     """
 
     name: ClassVar[str]
     kind: ClassVar[str]
     units: ClassVar[dict[str, str]]
+    magnitude_field: ClassVar[str | None] = None
 
     @classmethod
     def parameter_names(cls) -> tuple[str, ...]:
@@ -303,6 +287,7 @@ class NonlinearStiffness(AbstractTerm):
     K3: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     name: ClassVar[str] = "nonlinear_stiffness"
     kind: ClassVar[str] = "effect"
+    magnitude_field: ClassVar[str | None] = "K3"
     units: ClassVar[dict[str, str]] = {"K3": "N·m/rad³"}
 
     @classmethod
@@ -317,6 +302,7 @@ class LostMotion(AbstractTerm):
     backlash: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     name: ClassVar[str] = "lost_motion"
     kind: ClassVar[str] = "effect"
+    magnitude_field: ClassVar[str | None] = "backlash"
     units: ClassVar[dict[str, str]] = {"backlash": "rad"}
 
     @classmethod
@@ -336,6 +322,7 @@ class LoadDependentFriction(AbstractTerm):
     mu: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     name: ClassVar[str] = "load_dependent_friction"
     kind: ClassVar[str] = "effect"
+    magnitude_field: ClassVar[str | None] = "mu"
     units: ClassVar[dict[str, str]] = {"mu": "-"}
 
     @classmethod
@@ -350,6 +337,7 @@ class ThermalDrift(AbstractTerm):
     tau: Float[Array, ""] = eqx.field(default=THERMAL_TAU, converter=_as_float)
     name: ClassVar[str] = "thermal_drift"
     kind: ClassVar[str] = "effect"
+    magnitude_field: ClassVar[str | None] = "beta"
     units: ClassVar[dict[str, str]] = {"beta": "-", "tau": "s"}
 
     @classmethod
@@ -372,6 +360,7 @@ class InputDelay(AbstractTerm):
     delay: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     name: ClassVar[str] = "input_delay"
     kind: ClassVar[str] = "effect"
+    magnitude_field: ClassVar[str | None] = "delay"
     units: ClassVar[dict[str, str]] = {"delay": "s"}
 
     @classmethod
@@ -387,6 +376,7 @@ class RateIndependentHysteresis(AbstractTerm):
     sigma: Float[Array, ""] = eqx.field(default=1e-4, converter=_as_float)
     name: ClassVar[str] = "rate_independent_hysteresis"
     kind: ClassVar[str] = "effect"
+    magnitude_field: ClassVar[str | None] = "Th"
     units: ClassVar[dict[str, str]] = {"Th": "N·m", "sigma": "rad"}
 
     @classmethod
@@ -413,6 +403,7 @@ class PreslidingFriction(AbstractTerm):
     presliding_scale: Float[Array, ""] = eqx.field(default=0.0, converter=_as_float)
     name: ClassVar[str] = "presliding_friction"
     kind: ClassVar[str] = "effect"
+    magnitude_field: ClassVar[str | None] = "presliding"
     units: ClassVar[dict[str, str]] = {"presliding": "-", "presliding_scale": "-"}
 
     @classmethod

@@ -20,23 +20,34 @@ def _clean(obj):
     return obj
 
 
-def atomic_write_text(path, text: str) -> pathlib.Path:
-    """Write `text` (UTF-8, line ends as given) to `path`: a temporary file in the same folder,
-    flushed to disk, then renamed over `path`. The folder is created if needed."""
+def _replace_atomically(path, suffix: str, write) -> pathlib.Path:
+    """Create a temporary file (`suffix`) in `path`'s folder (created if needed), let
+    `write(fd, tmp)` fill it, then rename it over `path`; on any error the temporary file is
+    removed and the error raised, so `path` is either the old file or the whole new one."""
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
+        write(fd, tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
     return path
+
+
+def atomic_write_text(path, text: str) -> pathlib.Path:
+    """Write `text` (UTF-8, line ends as given) to `path`: a temporary file in the same folder,
+    flushed to disk, then renamed over `path`. The folder is created if needed."""
+
+    def write(fd, _tmp):
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+
+    return _replace_atomically(path, ".tmp", write)
 
 
 def atomic_write_json(path, obj) -> pathlib.Path:
@@ -44,15 +55,10 @@ def atomic_write_json(path, obj) -> pathlib.Path:
 
 
 def atomic_savefig(fig, path, **kwargs) -> pathlib.Path:
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    try:
+    """`fig.savefig` to `path` atomically (the temporary file keeps `path`'s suffix, which sets the format)."""
+
+    def write(fd, tmp):
+        os.close(fd)
         fig.savefig(tmp, **kwargs)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+
+    return _replace_atomically(path, pathlib.Path(path).suffix, write)

@@ -34,13 +34,14 @@ import dataclasses
 import math
 import os
 import pathlib
+import typing
 from typing import Any
 
 import equinox as eqx
 import numpy as np
 
 from ._dataset_write import write_dataset
-from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, PRESLIDING_DISTANCE, THERMAL_TAU, Effects
+from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, PRESLIDING_DISTANCE, TERMS, THERMAL_TAU, Effects
 from ._experiment import Experiment, make_experiment, stack_experiments
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
 from ._plant import Simulator, simulate_batch
@@ -803,22 +804,12 @@ def hide_effect(
     a = reference_magnitude(name, station) if magnitude is None else float(magnitude)
     if name in PERIODIC:
         return _with_periodic(base, name, int(order), a, float(phase))
-    if name == "nonlinear_stiffness":
-        return base.with_values(name, K3=a)
-    if name == "lost_motion":
-        return base.with_values(name, backlash=a)
-    if name == "load_dependent_friction":
-        return base.with_values(name, mu=a)
+    values = {typing.cast(str, TERMS[name].magnitude_field): a}
     if name == "thermal_drift":
-        return base.with_values(name, beta=a, tau=THERMAL_TAU if tau is None else float(tau))
-    if name == "input_delay":
-        return base.with_values(name, delay=a)
-    if name == "presliding_friction":
-        return base.with_values(name, presliding=a)
+        values["tau"] = THERMAL_TAU if tau is None else float(tau)
     if name == "rate_independent_hysteresis":
-        s = 0.02 * station.rated_torque / float(station.truth.K1) if sigma is None else float(sigma)
-        return base.with_values(name, Th=a, sigma=s)
-    raise AssertionError(name)  # pragma: no cover
+        values["sigma"] = 0.02 * station.rated_torque / float(station.truth.K1) if sigma is None else float(sigma)
+    return base.with_values(name, **values)
 
 
 def _with_periodic(base: Effects, name: str, order: int, amplitude: float, phase: float) -> Effects:
