@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._effects import THERMAL_TAU, harmonic_sum, thermal_factor
+from ._effects import THERMAL_TAU, ThermalDrift, harmonic_sum, thermal_factor
 from ._model import PARAMETER_UNITS, Parameters, Smoothing, _as_float, friction_parts
 from ._smooth import smooth_sign, smooth_step
 
@@ -72,7 +72,8 @@ class FrictionParameters(eqx.Module):
       `position_dependent_friction`, one per harmonic slot.
     - `torque_sin`, `torque_cos` (N·m): $b_k\\cos\\psi_k$, $b_k\\sin\\psi_k$ of `position_dependent_torque`.
     - `presliding_distance` (rad): $\\delta$ of `presliding_friction`.
-    - `thermal_beta` (-), `thermal_tau` (s): $\\beta$, $\\tau$ of `thermal_drift`.
+    - `thermal_drift`: the plant's own `hdjax.ThermalDrift` term ($\\beta$ -, $\\tau$ s), built
+      from the keywords `thermal_beta`, `thermal_tau`.
 
     Built from the eq. 9 values by keyword (`FrictionParameters(Tvp=..., ..., Tss2=...,
     ripple_sin=...)`); a fit's vector reaches them by the paths `"law.Tvp"` and so on.
@@ -84,8 +85,7 @@ class FrictionParameters(eqx.Module):
     torque_sin: Float[Array, " 3"]
     torque_cos: Float[Array, " 3"]
     presliding_distance: Float[Array, ""]
-    thermal_beta: Float[Array, ""]
-    thermal_tau: Float[Array, ""]
+    thermal_drift: ThermalDrift
 
     def __init__(self, *, Tvp, Tvn, Tsp, Tsn, Tssp1, Tssn1, Tss2, ripple_sin=0.0, ripple_cos=0.0, torque_sin=0.0,
                  torque_cos=0.0, presliding_distance=1e-3, thermal_beta=0.0, thermal_tau=THERMAL_TAU):
@@ -93,7 +93,7 @@ class FrictionParameters(eqx.Module):
         self.ripple_sin, self.ripple_cos = _f3(ripple_sin), _f3(ripple_cos)
         self.torque_sin, self.torque_cos = _f3(torque_sin), _f3(torque_cos)
         self.presliding_distance = _as_float(presliding_distance)
-        self.thermal_beta, self.thermal_tau = _as_float(thermal_beta), _as_float(thermal_tau)
+        self.thermal_drift = ThermalDrift(beta=thermal_beta, tau=thermal_tau)
 
     def eq9(self) -> dict[str, float]:
         """The seven eq. 9 values as Python floats."""
@@ -205,7 +205,7 @@ def friction_model_torque(
 
     s, us = jax.lax.cond(structure.presliding > 0.5, with_state, without_state, None)
     viscous, coulomb, stribeck = friction_parts(p.law, v, smoothing, direction=(s, us))
-    viscous = viscous * thermal_factor(structure.thermal * p.thermal_beta, p.thermal_tau, start_time + t)
+    viscous = viscous * thermal_factor(structure.thermal * p.thermal_drift.beta, p.thermal_drift.tau, start_time + t)
     ripple = has_position * harmonic_sum(theta, structure.ripple_orders, p.ripple_sin, p.ripple_cos)
     additive = has_position * harmonic_sum(theta, structure.torque_orders, p.torque_sin, p.torque_cos)
     return viscous + coulomb * (1.0 + ripple) + stribeck + additive

@@ -344,7 +344,7 @@ def _finding_params(problem: FrictionProblem, fold: _Fold, effect: str) -> dict:
     if effect == "presliding_friction":
         return {"presliding_distance": float(p.presliding_distance)}
     if effect == "thermal_drift":
-        return {"beta": float(p.thermal_beta), "tau": float(p.thermal_tau)}
+        return p.thermal_drift.to_dict()
     return {}
 
 

@@ -199,8 +199,8 @@ def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: 
                                thermal=st.thermal)
     elif name == "thermal_drift":
         beta, tau = _start_thermal(problem, fold, r, on, idx)
-        x[SLOT["thermal_beta"]], x[SLOT["thermal_tau"]] = beta / scale[SLOT["thermal_beta"]], np.log(tau)
-        free[SLOT["thermal_beta"]] = free[SLOT["thermal_tau"]] = True
+        x[SLOT["thermal_drift.beta"]], x[SLOT["thermal_drift.tau"]] = beta / scale[SLOT["thermal_drift.beta"]], np.log(tau)
+        free[SLOT["thermal_drift.beta"]] = free[SLOT["thermal_drift.tau"]] = True
         st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=st.torque_orders,
                                presliding=st.presliding, thermal=1.0)
     return _Fold(x, fold.tie, free, st)
@@ -337,7 +337,7 @@ def diagnose_friction(problem: FrictionProblem, *, min_gain: float = FRICTION_RU
             res = _cv_fit(problem, rows, folds)
             ok, gain, frac = _significant(current, res, rule)
             # friction falls as the lubricant warms (SPEC §4): a drift fitted the other way is no thermal drift
-            physical = name != "thermal_drift" or all(float(fold_params(problem, f).thermal_beta) > 0 for f in res.folds)
+            physical = name != "thermal_drift" or all(float(fold_params(problem, f).thermal_drift.beta) > 0 for f in res.folds)
             ok = ok and (physical or not rule.physical_sign)
             scores[name] = {"significant": ok, "gain": gain, "folds_improved": frac, "result": res}
             log(f"  + {name}: held-out RMS {current.rms:.4g} → {res.rms:.4g} N·m ({gain:+.1%}, better in {frac:.0%} of folds)"

@@ -13,7 +13,7 @@ per sample saying which samples it may see. Rows are `vmap`ped:
 Each row has `E + 1` entries, so all calls share one shape and one compilation.
 
 The vector is normalised (viscous by RMS torque / RMS velocity, torques by RMS torque, `Tss2`,
-`presliding_distance` and `thermal_tau` through their logarithm), residuals are divided by the RMS
+`presliding_distance` and `thermal_drift.tau` through their logarithm), residuals are divided by the RMS
 torque. Directions without data (fewer than `MIN_DIRECTION_SAMPLES` samples beyond
 3 × `Smoothing.velocity_scale`, or under 2 % of the moving samples) cannot be identified: their three
 parameters are tied to the other direction's (a symmetric-friction assumption the report states).
@@ -64,7 +64,7 @@ FRICTION_ENTRIES = (
     Entry("law.Tvp"), Entry("law.Tvn"), Entry("law.Tsp"), Entry("law.Tsn"), Entry("law.Tssp1"), Entry("law.Tssn1"),
     Entry("law.Tss2", transform="log"),
     Entry("ripple_sin", M), Entry("ripple_cos", M), Entry("torque_sin", M), Entry("torque_cos", M),
-    Entry("presliding_distance", transform="log"), Entry("thermal_beta"), Entry("thermal_tau", transform="log"),
+    Entry("presliding_distance", transform="log"), Entry("thermal_drift.beta"), Entry("thermal_drift.tau", transform="log"),
 )  # fmt: skip
 _PATH_SLOT = slots(FRICTION_ENTRIES)  # by field path ("law.Tvp", "ripple_sin", ...)
 #: Vector index / slice of each field, keyed by its name (the eq. 9 fields without their `law.` path).
@@ -372,7 +372,7 @@ class FrictionProblem:
         eq9 = EQ9_SLOTS
         x[eq9] = x_best  # six torques, then ln Tss2 (`FRICTION_NAMES` order)
         x[eq9[:6]] /= np.asarray(self.scale)[eq9[:6]]
-        x[SLOT["presliding_distance"]], x[SLOT["thermal_tau"]] = np.log(1e-3), np.log(THERMAL_TAU)
+        x[SLOT["presliding_distance"]], x[SLOT["thermal_drift.tau"]] = np.log(1e-3), np.log(THERMAL_TAU)
         return x
 
     # ---------------------------------------------------------------- fitting
