@@ -118,8 +118,10 @@ class AbstractTerm(eqx.Module):
     A term is either a SPEC §4 effect of the drive (`kind` = "effect") or a SPEC §4b assumption of
     the base model that the diagnosis may loosen (`kind` = "model_form"). Subclasses are final; they
     declare `name` (the SPEC name), `kind`, `units` (per field), `magnitude_field` (the field that
-    says how large a scalar effect is, set by `hdjax.rig.hide_effect`; None elsewhere) and, where the loop fits them,
-    `fitted(ctx)`; `from_data(ctx)` sets the shape parameters that are not fitted.
+    says how large a scalar effect is, set by `hdjax.rig.hide_effect`; None elsewhere) and, where
+    the loop fits them, `fitted(ctx)`; `from_data(ctx)` sets the shape parameters that are not
+    fitted. `from_dict` refuses a parameter the term does not have (a description's `unit` and
+    `form` keys excepted).
     """
 
     name: ClassVar[str]
