@@ -222,3 +222,6 @@ def test_every_term_carries_its_parameters_units_fit_settings_and_plain_numbers(
         hdjax.Effects(cogging=hdjax.NonlinearStiffness())  # pyright: ignore[reportArgumentType]  the refusal under test
     with pytest.raises(ValueError, match="K4"):
         hdjax.Effects.from_dict({"nonlinear_stiffness": {"K4": 1.0}})
+    for order in (0, 9):  # an index outside 1..MAX_ORDER would land on another order's slot
+        with pytest.raises(ValueError, match="order must be 1..8"):
+            hdjax.Effects().with_periodic("cogging", order, 1.0)

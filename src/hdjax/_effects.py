@@ -202,7 +202,10 @@ class AbstractPeriodicTerm(AbstractTerm):
         return jnp.arange(1, MAX_ORDER + 1), jnp.hypot(self.sin, self.cos), jnp.arctan2(self.cos, self.sin)
 
     def with_order(self: _P, order: int, amplitude: float, phase: float = 0.0) -> _P:
-        """A copy with `amplitude·sin(order·θm + phase)` added."""
+        """A copy with `amplitude·sin(order·θm + phase)` added; `order` must be 1..`MAX_ORDER` (an index
+        outside would land on another order's slot)."""
+        if not 1 <= int(order) <= MAX_ORDER:
+            raise ValueError(f"effect {self.name!r}: order must be 1..{MAX_ORDER}, got {order}.")
         s = jnp.asarray(self.sin).at[order - 1].add(amplitude * jnp.cos(phase))
         c = jnp.asarray(self.cos).at[order - 1].add(amplitude * jnp.sin(phase))
         return dataclasses.replace(self, sin=s, cos=c)
@@ -217,8 +220,6 @@ class AbstractPeriodicTerm(AbstractTerm):
         new = self
         for k, a, ph in zip(spec["orders"], spec["amplitudes"], spec["phases"]):
             if a:
-                if not 1 <= int(k) <= MAX_ORDER:
-                    raise ValueError(f"effect {self.name!r}: order {k} outside 1..{MAX_ORDER}.")
                 new = new.with_order(int(k), float(a), float(ph))
         return new
 

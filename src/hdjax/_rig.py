@@ -41,7 +41,7 @@ import equinox as eqx
 import numpy as np
 
 from ._dataset_write import write_dataset
-from ._effects import EFFECT_NAMES, MAX_ORDER, PERIODIC, PRESLIDING_DISTANCE, TERMS, THERMAL_TAU, Effects
+from ._effects import EFFECT_NAMES, PERIODIC, PRESLIDING_DISTANCE, TERMS, THERMAL_TAU, Effects
 from ._experiment import Experiment, make_experiment, stack_experiments
 from ._model import PARAMETER_NAMES, PARAMETER_UNITS, Drive, Parameters
 from ._plant import Simulator, simulate_batch
@@ -803,21 +803,13 @@ def hide_effect(
         raise ValueError(f"`hide_effect`: unknown effect {name!r}; known: {list(EFFECT_NAMES)}.")
     a = reference_magnitude(name, station) if magnitude is None else float(magnitude)
     if name in PERIODIC:
-        return _with_periodic(base, name, int(order), a, float(phase))
+        return base.with_periodic(name, int(order), a, float(phase))
     values = {typing.cast(str, TERMS[name].magnitude_field): a}
     if name == "thermal_drift":
         values["tau"] = THERMAL_TAU if tau is None else float(tau)
     if name == "rate_independent_hysteresis":
         values["sigma"] = 0.02 * station.rated_torque / float(station.truth.K1) if sigma is None else float(sigma)
     return base.with_values(name, **values)
-
-
-def _with_periodic(base: Effects, name: str, order: int, amplitude: float, phase: float) -> Effects:
-    """`base` plus `amplitude·sin(order·θm + phase)` in periodic effect `name`, switched on
-    (`Effects.with_periodic`, after checking the order)."""
-    if not 1 <= order <= MAX_ORDER:
-        raise ValueError(f"`hide_effect`: order must be 1..{MAX_ORDER}, got {order}.")
-    return base.with_periodic(name, order, amplitude, phase)
 
 
 def describe_effects(effects: Effects) -> dict[str, dict]:
