@@ -1,5 +1,5 @@
 """Which real-bench deviation makes the paper model miss which record: the independent bench
-(`hdjax._bench`) with all its deviations on, all off, and each one switched off alone; hdjax's plant
+(`hdjax._testbench.independent`) with all its deviations on, all off, and each one switched off alone; hdjax's plant
 simulated at the bench's *true* parameters (no fit, so nothing is absorbed by re-fitted
 parameters); per record, the RMS of the torque and motor-velocity residuals over the record's own
 sensor-noise level (`noise_levels`, 1 = noise only).

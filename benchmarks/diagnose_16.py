@@ -1,5 +1,5 @@
 """Benchmark (not a test): diagnose a 16-experiment dataset (8 constrained + 8 free, 2.5 s at
-1 kHz) from the independent bench (`hdjax._bench`, not hdjax's plant) with one hidden SPEC §4
+1 kHz) from the independent bench (`hdjax._testbench.independent`, not hdjax's plant) with one hidden SPEC §4
 effect at 4× the sensor noise; goal under 3 minutes on the 2-core CI machine. The many-seed
 recall figure is `benchmarks/diagnose_independent.py`; this one times a single dataset.
 

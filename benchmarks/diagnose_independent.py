@@ -1,5 +1,5 @@
 """Benchmark (not a test): the discrepancy loop on datasets from the independent bench
-(`hdjax._bench`: its own integrator, stick–slip friction, a current loop, sensor dynamics,
+(`hdjax._testbench.independent`: its own integrator, stick–slip friction, a current loop, sensor dynamics,
 offsets and jitter; it shares no code with hdjax's plant).
 
 Each dataset is 8 locked + 8 free records of 2.5 s at 1 kHz, drawn around HD1 or HD2, with no

@@ -9,7 +9,7 @@ What is compared (all sides identical except for the numerics engine):
 
 - data: a subset of `data/hd2` (default 2 constrained + 2 free experiments, the first
   `--samples` samples = 0.5 s at 1 kHz of each record; change with the options);
-- model: eqs. 5, 8, 9 with the same smoothing as `hdjax._model` (tanh sign/step at 1e-3 rad/s,
+- model: eqs. 5, 8, 9 with the same smoothing as `hdjax._model.paper` (tanh sign/step at 1e-3 rad/s,
   x(x²+s²)^((α-1)/2) power at 1e-5 rad/s), the same states (torsion, motor velocity, output angle,
   output velocity), the same initial state (local line fits with rest detection, as
   `hdjax.initial_state`; `start_fits` gives the same fits to scipy and CasADi), piecewise-linear

@@ -1,6 +1,6 @@
 """Benchmark (not a test): the fixed-step implicit velocity-level stepper (`hdjax.VelocityImplicit`)
 against itself at a tight step and against the adaptive Rodas3 default, on the shipped HD2 campaign
-and on a dataset from the independent bench (`hdjax._bench`).
+and on a dataset from the independent bench (`hdjax._testbench.independent`).
 
 Prints, per dataset and per number of substeps m (steps per 1 ms sample):
 - the RMS and the maximum error of torque and motor velocity in sensor-noise σ against m = 128

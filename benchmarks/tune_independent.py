@@ -1,11 +1,11 @@
-"""Benchmark (not a test): controller tuning on drives from the independent bench (`hdjax._bench`:
+"""Benchmark (not a test): controller tuning on drives from the independent bench (`hdjax._testbench.independent`:
 its own integrator, stick–slip friction, a current loop, sensor dynamics, offsets; it shares no
 code with hdjax's plant).
 
 Each drive (HD1- or HD2-like, seeds from 7000 on, not used by the tests) gets its own dataset
 (`--locked` + `--free` records of 2.5 s at 1 kHz), is identified from it by the library's fit
-(`hdjax._identify.run_fit`: paper's regressions, joint trajectory-error LM on `--fit-experiments`
-records, per-experiment LM fits for the plant set) and tuned by `hdjax._tune.run_tune`, which
+(`hdjax._workflows.fit.run_fit`: paper's regressions, joint trajectory-error LM on `--fit-experiments`
+records, per-experiment LM fits for the plant set) and tuned by `hdjax._workflows.tune.run_tune`, which
 validates the tuned controller and both baselines (relay + Ziegler–Nichols PI; model-based MIGO PI
 with feed-forward) on the bench rebuilt from the dataset's truth.yaml.
 

@@ -1,4 +1,4 @@
-"""Numerics of the sampled torque loop (`hdjax._control.closed_loop`): substeps per sample vs
+"""Numerics of the sampled torque loop (`hdjax._control.closed_loop.closed_loop`): substeps per sample vs
 accuracy vs time, with and without the step-failure refinement, and the AD gradient vs central
 differences at the tuning model's smoothing. HD2 truth (Table I, per-degree reading), 1 kHz, locked
 step and free doublet under a Ziegler–Nichols-like PI and under the model feed-forward with
@@ -27,7 +27,7 @@ def main():
     st = station_hd2()
     plant = Plant(st.truth, st.drive)
     ctrl = TorqueController(friction=st.truth, drive=st.drive, sample_period=1e-3, current_limit=5.6)
-    sm = Smoothing(velocity_scale=0.03, torsion_rate_scale=1e-3)  # tuning-model smoothing (hdjax._tune)
+    sm = Smoothing(velocity_scale=0.03, torsion_rate_scale=1e-3)  # tuning-model smoothing (hdjax._workflows.tune)
     refs = {
         "locked step 82 N·m": step_reference(82.0, duration=args.duration),
         "free doublet 5 N·m": doublet_reference(5.0, 0.055, duration=args.duration),

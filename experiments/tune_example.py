@@ -13,7 +13,7 @@ st = station_hd1()
 plant = Plant(st.truth, st.drive)
 controller = TorqueController(friction=st.truth, drive=st.drive, sample_period=1e-3, current_limit=6.0)
 reference = step_reference(15.0, duration=0.2)  # 15 N·m step, output locked
-smoothing = Smoothing(velocity_scale=0.03, torsion_rate_scale=1e-3)  # tuning-model smoothing (see hdjax._control)
+smoothing = Smoothing(velocity_scale=0.03, torsion_rate_scale=1e-3)  # tuning-model smoothing (see hdjax._control.closed_loop)
 
 
 def cost(kp, ki):

@@ -1,7 +1,7 @@
 """Write the datasets the project ships: `data/hd1/` and `data/hd2/` from the independent bench.
 
 Each is a campaign of 20 constrained + 30 free-motion records, 1.5 s at 1 kHz, made by
-`hdjax._bench` (issue 18): a numpy fixed-step integrator written apart from hdjax's plant, with the
+`hdjax._testbench.independent` (issue 18): a numpy fixed-step integrator written apart from hdjax's plant, with the
 deviations of a real bench switched on at their defaults — exact stick–slip friction with a
 breakaway (not tanh(ω/s)), the current from a simulated PI current loop with PWM ripple and
 *sampled*, strain-gauge and tachometer bandwidth, tachometer ripple, encoder quantisation, DC
@@ -14,7 +14,7 @@ drawn truth is in `truth.yaml`. Fixed seeds make the files reproducible:
   strain gauges seeing the wave generator's ellipse) at 3× the strain-gauge noise (RMS change of
   the recorded torque): the paper reports torque ripple that its model does not capture.
 
-(Until 2026-11-26 these folders were made by `hdjax._rig`, which records hdjax's own plant: the
+(Until 2026-11-26 these folders were made by `hdjax._testbench.rig`, which records hdjax's own plant: the
 fit then ran where its model is exact.)
 
 Usage: `python scripts/make_datasets.py [--out DATA_DIR]` (default: `data/` at the repo root).

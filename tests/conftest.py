@@ -1,5 +1,5 @@
 """The suite runs as the commands do: float64 on, and the CPU's cores as JAX host devices
-(`hdjax._sharding.use_host_devices`, before the first JAX computation), so fits, simulations and
+(`hdjax._plant.sharding.use_host_devices`, before the first JAX computation), so fits, simulations and
 diagnoses spread their experiments over devices. `HDJAX_HOST_DEVICES=1` runs it on one device.
 
 Under pytest-xdist (`-n auto`, the default in pyproject.toml) each worker process takes its share
@@ -14,7 +14,7 @@ in the tests alike.
 **Runtime type checks.** Every hdjax module but the independent bench is imported through
 jaxtyping's import hook with beartype (installed below, before anything imports hdjax): each
 function and Module is checked on every call against its annotations (shapes and dtypes named by
-physical axis, e.g. `Float[Array, "*exp time"]`). `hdjax._bench` is left out (`UNCHECKED`): it is
+physical axis, e.g. `Float[Array, "*exp time"]`). `hdjax._testbench.independent` is left out (`UNCHECKED`): it is
 numpy code written apart from hdjax, with no array annotations to check, and its integrator calls
 small functions ~10⁵ times per dataset; the checker's wrapper on each call made it 5.3× slower
 (a 4 + 4 × 1.5 s dataset: 28.9 s against 5.5 s), which the suite paid in every test that makes
@@ -22,7 +22,7 @@ bench data. `HDJAX_RUNTIME_TYPECHECK=0` runs without the checker."""
 
 import importlib.util
 import os
-import pkgutil
+import pathlib
 
 # the commands keep compiled programs in a persistent cache (`hdjax.use_compilation_cache`); the
 # commands that tests run in-process or in a subprocess do not write to the user's cache folder
@@ -31,15 +31,28 @@ os.environ.setdefault("HDJAX_COMPILATION_CACHE", "off")
 import jaxtyping
 
 #: hdjax modules the runtime type checker leaves out, and why (see the module docstring).
-UNCHECKED = {"hdjax._bench": "numpy-only independent bench, no array annotations; 5.3x slower when wrapped"}
+UNCHECKED = {"hdjax._testbench.independent": "numpy-only independent bench, no array annotations; 5.3x slower when wrapped"}
 
 
 def checked_modules() -> list[str]:
-    """Every module of the hdjax package (found on disk, without importing it) but `UNCHECKED`."""
+    """Every module of the hdjax package, sub-packages included (found on disk, without importing
+    anything: importing a sub-package would import `hdjax` before the hook), but `UNCHECKED`."""
     spec = importlib.util.find_spec("hdjax")
     assert spec is not None and spec.submodule_search_locations is not None
-    found = ["hdjax." + m.name for m in pkgutil.iter_modules(list(spec.submodule_search_locations))]
-    return sorted(m for m in found if m not in UNCHECKED)
+    found = []
+    for root in spec.submodule_search_locations:
+        for path in sorted(pathlib.Path(root).rglob("*.py")):
+            parts = path.relative_to(root).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            if parts:
+                found.append(".".join(("hdjax", *parts)))
+    # the hook matches a name and everything below it: a package that holds an unchecked module is
+    # left out itself (its modules are listed one by one)
+    def holds_unchecked(m: str) -> bool:
+        return any(u == m or u.startswith(m + ".") for u in UNCHECKED)
+
+    return sorted(m for m in found if not holds_unchecked(m))
 
 
 if os.environ.get("HDJAX_RUNTIME_TYPECHECK", "1") != "0":

@@ -1,4 +1,4 @@
-"""The commands' JSON artifacts (`hdjax._artifacts`): fit.json and extended_model.json as
+"""The commands' JSON artifacts (`hdjax._workflows.artifacts`): fit.json and extended_model.json as
 `sensitivity` and `tune` read them, and the plain-number form of `Effects`."""
 
 import json
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hdjax import PARAMETER_NAMES, Effects, effects_from_dict, effects_to_dict, read_extended_model, read_fit_json
-from hdjax._artifacts import fit_json_dataset
+from hdjax._workflows.artifacts import fit_json_dataset
 from helpers import hd2
 
 
@@ -78,10 +78,10 @@ def test_effects_round_trip_through_the_extended_model(tmp_path):
 
 
 def test_an_output_is_replaced_whole_or_not_at_all(tmp_path):
-    """`hdjax._io`: a write that fails midway (text that cannot be encoded, a figure whose save
+    """`hdjax._workflows.io`: a write that fails midway (text that cannot be encoded, a figure whose save
     raises) leaves the previous file as it was and no temporary file beside it; a write that
     succeeds replaces it."""
-    from hdjax._io import atomic_savefig, atomic_write_text
+    from hdjax._workflows.io import atomic_savefig, atomic_write_text
 
     out = tmp_path / "fit.json"
     atomic_write_text(out, "old\n")

@@ -1,4 +1,4 @@
-"""The independent virtual test bench (`hdjax._bench`): physics, deviations, snr calibration, output."""
+"""The independent virtual test bench (`hdjax._testbench.independent`): physics, deviations, snr calibration, output."""
 
 import ast
 import dataclasses
@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from hdjax import _bench, load_dataset
+from hdjax import load_dataset
+from hdjax._testbench import independent as _bench
 
 SRC = pathlib.Path(_bench.__file__)
 TINY = {"n_locked": 2, "n_free": 2, "duration": 0.6}
@@ -28,7 +29,7 @@ def test_imports_nothing_from_hdjax_or_jax():
         if isinstance(node, ast.Import):
             names += [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
-            assert node.level == 0, f"relative import `from {'.' * node.level}{node.module or ''}` in _bench.py"
+            assert node.level == 0, f"relative import `from {'.' * node.level}{node.module or ''}` in the independent bench"
             names.append(node.module)
     assert names, "no imports found"
     for n in names:

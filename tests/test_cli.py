@@ -30,8 +30,9 @@ import pathlib
 
 import pytest
 
-from hdjax import ConfigError, _cli
-from hdjax._config import check_keys, section_options
+from hdjax import ConfigError
+from hdjax._workflows import cli as _cli
+from hdjax._workflows.config import check_keys, section_options
 
 
 def _help(capsys, argv):
@@ -112,7 +113,7 @@ def _fake_run(command, dataset, config, out, log):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from hdjax._progress import task
+    from hdjax._workflows.progress import task
 
     log(f"[1/1] {command} on {dataset.name}")
     with task(log, "work", 3, unit="items") as bar:
@@ -155,7 +156,9 @@ def test_default_output_folders():
 def test_fit_cutoff_reaches_the_paper_identification_of_every_command(command, monkeypatch, tmp_path):
     """`fit.cutoff_hz` (and alpha, Tss2) of the config reach the paper's regressions in `diagnose`
     and `tune` as they do in `fit` and `sensitivity` (both dropped it before)."""
-    from hdjax import _diagnose_report, _paper_id, _tune, load_dataset
+    from hdjax import load_dataset
+    from hdjax._fit import paper as _paper_id
+    from hdjax._workflows import diagnose as _diagnose_report, tune as _tune
 
     seen = {}
 
@@ -184,7 +187,7 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
     default (`Ros34PW2` with the plant's stiff part), adaptive Rodas3, or the fixed-step implicit
     velocity-level stepper with `substeps`; a bad value names its key."""
     import hdjax
-    from hdjax._identify import DEFAULTS, trajectory_simulator
+    from hdjax._workflows.fit import DEFAULTS, trajectory_simulator
 
     opts = dict(DEFAULTS["trajectory"])
     assert opts["solver"] == "ros34pw2"
@@ -206,7 +209,7 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
 def test_per_experiment_fits_run_at_their_own_tolerance():
     """The per-experiment fits use the joint fit's numerics at `fit.trajectory.per_experiment_rtol`
     (a decade looser by default); a tolerance that is not a number in (0, 0.1] names its key."""
-    from hdjax._identify import DEFAULTS, per_experiment_simulator, trajectory_simulator
+    from hdjax._workflows.fit import DEFAULTS, per_experiment_simulator, trajectory_simulator
 
     opts = dict(DEFAULTS["trajectory"])
     assert opts["per_experiment_rtol"] == 10 * opts["rtol"]

@@ -22,8 +22,8 @@ from hdjax import (
     tune_gains,
     ziegler_nichols_pi,
 )
-from hdjax._control import batch_cost, smooth_saturation
-from hdjax._tune import _options
+from hdjax._control.closed_loop import batch_cost, smooth_saturation
+from hdjax._workflows.tune import _options
 from helpers import hd1
 
 SM = Smoothing(velocity_scale=0.03, torsion_rate_scale=1e-3)
@@ -96,7 +96,7 @@ def test_bad_options_are_refused_with_the_field_named():
     with pytest.raises(ValueError, match=r"tune.current_limit.*positive"):
         _options({"tune": {"current_limit": -1.0}})
     with pytest.raises(ValueError, match=r"tune.fit.*does not exist"):
-        from hdjax._tune import _find_fit
+        from hdjax._workflows.tune import _find_fit
 
         _find_fit(load_dataset(pathlib.Path(__file__).parents[1] / "data" / "hd1"), dict(_options({}), fit="/nonexistent/fit.json"),
                   pathlib.Path("unused"))
@@ -114,7 +114,7 @@ def test_reference_motor_velocity_is_the_velocity_the_model_runs_at():
     its own parameters and a PI that tracks, that velocity must be the simulated motor velocity: the
     identified compliance (K1 and the power-law damping, not r'/K1 alone) on a locked sine, plus the
     load's velocity on a free one."""
-    from hdjax._control import reference_motor_velocity
+    from hdjax._control.closed_loop import reference_motor_velocity
 
     plant, ctrl = _setup()
     N, JL = float(plant.drive.gear_ratio), float(plant.drive.load_inertia)
@@ -139,7 +139,7 @@ def test_reference_motor_velocity_is_the_velocity_the_model_runs_at():
 def test_numpy_law_equals_the_jax_law():
     """The bench runs the controller through `numpy_torque_law`; fed the same measurements it must
     command the same current as `closed_loop`'s law, for every gain (kfr and the free schedule included)."""
-    from hdjax._control import numpy_torque_law
+    from hdjax._control.closed_loop import numpy_torque_law
 
     plant, ctrl = _setup()
     gains = [TorqueGains(kp=0.3, ki=150.0, kd=1e-4, kr=0.9, kf=0.4, kj=1.1, kpf=0.5, kif=0.7, kfr=0.6),

@@ -22,7 +22,7 @@ from hdjax import (
     make_friction_experiment,
     write_dataset,
 )
-from hdjax._data import resolve_target
+from hdjax._data.load import resolve_target
 
 DRIVE = Drive(gear_ratio=160.0, torque_constant=0.1815, load_inertia=0.5)
 

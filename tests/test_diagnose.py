@@ -1,10 +1,10 @@
 """The discrepancy loop where the base model is exact: rig data made by hdjax's own plant
-(`hdjax._rig`). Kept only for what needs an exact model: clean data must give neither a finding
+(`hdjax._testbench.rig`). Kept only for what needs an exact model: clean data must give neither a finding
 nor a model_form item, and the noise model must whiten the process noise that the recorded
 current drives through the simulation.
 
 Whether the loop names hidden effects is judged on data the package did not make:
-`tests/test_diagnose_bench.py` (the independent bench, `hdjax._bench`).
+`tests/test_diagnose_bench.py` (the independent bench, `hdjax._testbench.independent`).
 """
 
 import numpy as np
@@ -62,7 +62,7 @@ def test_process_noise_measures_the_current_noise_that_drives_the_simulation():
     import jax.numpy as jnp
 
     from hdjax import make_experiment, stack_experiments
-    from hdjax._diagnose import _process_noise
+    from hdjax._discrepancy.loop import _process_noise
 
     rng = np.random.default_rng(3)
     t = np.arange(4000) * 1e-3
@@ -87,7 +87,7 @@ def test_noise_model_whitens_random_walk_process_noise():
     noise realisations plus unit sensor noise, must whiten a fresh realisation of each record to unit
     variance with no correlation at lags 1–10 (the raw residual is far from that), and leave a record with
     sensor noise only as it is."""
-    from hdjax._diagnose import _noise_model
+    from hdjax._discrepancy.loop import _noise_model
 
     rng = np.random.default_rng(5)
     n = 3000

@@ -1,7 +1,7 @@
 """The discrepancy loop on data the package did not make: datasets from the independent bench
-(`hdjax._bench`), where the paper model is never exact.
+(`hdjax._testbench.independent`), where the paper model is never exact.
 
-What differs from hdjax's plant, in every dataset here (all `hdjax._bench.Deviations` on, their
+What differs from hdjax's plant, in every dataset here (all `hdjax._testbench.independent.Deviations` on, their
 defaults): the bench is a numpy fixed-step (20 kHz) velocity-level integrator written apart from
 hdjax; its low-speed friction is exact stick–slip with a breakaway torque 1.1–1.3× the friction
 level (not tanh(ω/s)); the current comes from a simulated PI current loop on an R–L winding with

@@ -3,7 +3,7 @@
 import numpy as np
 
 from hdjax import Significance
-from hdjax._diagnose import _drift_share, _FoldFits, _judge, _solve_normal, near_misses
+from hdjax._discrepancy.loop import _drift_share, _FoldFits, _judge, _solve_normal, near_misses
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -175,7 +175,7 @@ def test_forward_selection_names_the_best_significant_candidate_each_round():
     """The greedy loop both diagnoses run (`forward_selection`): each round names the significant
     candidate that gains most, the pool shrinks by it (and by what `retest` drops), and the loop
     stops when nothing is significant or at `max_findings`."""
-    from hdjax._significance import forward_selection
+    from hdjax._discrepancy.significance import forward_selection
 
     # per round, candidate -> (significant, gain); the model "learns" what was accepted
     table = [
@@ -210,7 +210,7 @@ def test_forward_selection_adopts_an_outside_winner_without_counting_it():
     """The output-error diagnosis lets unadopted model_form assumptions compete with the effects:
     `screen` scores a name outside the pool ("lag"); when it wins a round it is accepted, counts
     towards no `max_findings` (`counts`), and the same pool is screened again."""
-    from hdjax._significance import forward_selection
+    from hdjax._discrepancy.significance import forward_selection
 
     pools, named, adopted = [], [], []
 
@@ -240,7 +240,7 @@ def test_a_peak_left_at_a_named_order_is_not_called_unexplained_by_any_candidate
     at that order gained (seen on bench seed 811: ripple [3] named, 0.4 N·m left at order 3)."""
     from types import SimpleNamespace
 
-    from hdjax._evidence import unexplained
+    from hdjax._discrepancy.evidence import unexplained
 
     rng = np.random.default_rng(0)
     n_exp, n = 3, 2000
@@ -283,7 +283,7 @@ def test_an_effect_fitted_with_the_sign_its_physics_forbids_is_not_that_effect()
     """`_physical_sign`: a thermal drift with β < 0 (friction rising over the session), a negative
     input delay (an advance), a softening cubic and so on are refused in any held-out fold fit;
     lost motion (|backlash|) and periodic terms have no sign. Every signed effect of SPEC §4 is covered."""
-    from hdjax._diagnose import PHYSICAL_SIGN, _Column, _physical_sign
+    from hdjax._discrepancy.loop import PHYSICAL_SIGN, _Column, _physical_sign
 
     cols = [_Column("kinematic_error", "sin", 0, 1e-5, 0.0), _Column("thermal_drift", "beta", None, 1.0, 0.0),
             _Column("input_delay", "delay", None, 1e-3, 0.0), _Column("lost_motion", "backlash", None, 1e-5, 1e-9),
@@ -347,9 +347,9 @@ def test_every_reported_parameter_and_adjustment_has_a_unit():
     """A finding's parameters and a model_form item's adjustment carry units (diagnosis.json's
     `parameter_units`, `adjustment_units`), and the report prints them: a user reads
     `b2 = 1.8 N·m, phi2 = 1.25 rad`, not bare numbers."""
-    from hdjax._diagnose import _describe, parameter_units
-    from hdjax._diagnose_report import with_units
-    from hdjax._effects import EFFECT_NAMES, FIELD_UNITS, MODEL_FORM, PERIODIC, SCALAR, Effects
+    from hdjax._discrepancy.loop import _describe, parameter_units
+    from hdjax._model.effects import EFFECT_NAMES, FIELD_UNITS, MODEL_FORM, PERIODIC, SCALAR, Effects
+    from hdjax._workflows.diagnose import with_units
 
     assert set(FIELD_UNITS) == {f for fields in (*SCALAR.values(), *MODEL_FORM.values()) for f in fields}
     effects = Effects().with_periodic("torque_sensor_ripple", 2, 1.8, 1.25).with_periodic("kinematic_error", 3, 2e-5)

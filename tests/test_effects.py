@@ -159,15 +159,15 @@ def test_presliding_friction_converges_as_its_distance_shrinks():
 
 
 def test_presliding_law_is_the_friction_only_fits_dahl_law():
-    """The plant's `presliding_friction` state (`hdjax._effects.PreslidingFriction.rate`, an ODE) and the
-    friction-only fits' Dahl state (`hdjax._friction.dahl_recurrence`, the exact update for a
+    """The plant's `presliding_friction` state (`hdjax._model.effects.PreslidingFriction.rate`, an ODE) and the
+    friction-only fits' Dahl state (`hdjax._model.friction_only.dahl_recurrence`, the exact update for a
     velocity held over each sample) are one law: integrated along the same velocity record (a 2 Hz
     sine through zero, 10 kHz) they agree to 1 % of the state's range once |ω| exceeds 5 smoothing
     scales (below that the plant smooths |ω| as ω·tanh(ω/v_s))."""
     import diffrax as dfx
 
-    from hdjax._effects import PRESLIDING_DISTANCE
-    from hdjax._friction import dahl_recurrence
+    from hdjax._model.effects import PRESLIDING_DISTANCE
+    from hdjax._model.friction_only import dahl_recurrence
 
     vs = 1e-3
     t = np.arange(0.0, 1.0, 1e-4)
@@ -187,14 +187,14 @@ def test_presliding_law_is_the_friction_only_fits_dahl_law():
 
 
 def test_every_term_carries_its_parameters_units_fit_settings_and_plain_numbers():
-    """One final Module per SPEC §4 effect and §4b assumption (`hdjax._effects.TERMS`), each with
+    """One final Module per SPEC §4 effect and §4b assumption (`hdjax._model.effects.TERMS`), each with
     its units, the loop's fitted fields (scales > 0), the shape settings it takes from the data,
     and a plain-number form: every term switched on with values off its defaults round-trips
     through `Effects.to_dict` / `Effects.from_dict`; a term in the wrong slot and an unknown
     parameter are refused by name."""
     import pytest
 
-    from hdjax._effects import EFFECT_NAMES, MODEL_FORM_NAMES, TERMS, AbstractPeriodicTerm
+    from hdjax._model.effects import EFFECT_NAMES, MODEL_FORM_NAMES, TERMS, AbstractPeriodicTerm
 
     ctx = {"torque_noise": 0.1, "K1": 6000.0, "coulomb": 0.05, "torsion": 0.01, "torque_max": 50.0, "dt": 1e-3,
            "velocity_noise": 0.02, "current_noise": 0.01, "session_span": 1000.0, "wave_generator_speed": 20.0}

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hdjax import identify_paper
-from hdjax._identify import hysteresis_curves
+from hdjax._workflows.fit import hysteresis_curves
 from test_paper_id import DRIVE, TRUE, constrained
 
 
@@ -27,7 +27,7 @@ def test_fig3_optimal_alpha_curve_fits_at_least_as_well(alpha_true):
     # not that parameter set's fit, and fits visibly worse whenever α moved
     if abs(opt["alpha"] - 0.5) > 0.05:
         from hdjax import smooth_signed_power
-        from hdjax._paper_id import _TORSION_RATE_SCALE, _prepare
+        from hdjax._fit.paper import _TORSION_RATE_SCALE, _prepare
 
         q, _, _ = _prepare(exps, DRIVE, 50.0, 5, [])
         tors, rate, T = (np.asarray(x[0]) for x in (q.torsion, q.torsion_rate, q.torque))
@@ -37,7 +37,7 @@ def test_fig3_optimal_alpha_curve_fits_at_least_as_well(alpha_true):
 
 
 def test_diagnosis_figures_draw_spectra_residuals_and_the_loop(tmp_path):
-    """`hdjax diagnose`'s figures (`hdjax._plots.diagnosis_figures`) from a diagnosis result: the
+    """`hdjax diagnose`'s figures (`hdjax._workflows.plots.diagnosis_figures`) from a diagnosis result: the
     order spectra, the torque residual before/after the extension and the constrained test's loop."""
     from types import SimpleNamespace
 
@@ -76,8 +76,8 @@ def test_spectra_figure_shows_each_spectrum_in_units_of_its_detection_threshold(
     ill-conditioned, its amplitudes meaningless), torque-balance spectra as the smaller of their two
     threshold ratios, so a bar above 1 is exactly an order the loop screens."""
     from hdjax import MAX_ORDER
-    from hdjax._evidence import TB_MAX_RATIO, TB_MEDIAN_RATIO
-    from hdjax._plots import _spectrum_panels
+    from hdjax._discrepancy.evidence import TB_MAX_RATIO, TB_MEDIAN_RATIO
+    from hdjax._workflows.plots import _spectrum_panels
 
     amp = np.linspace(0.1, 0.8, MAX_ORDER)
     over_median = np.linspace(1.0, 9.0, MAX_ORDER)
@@ -104,7 +104,7 @@ def test_before_after_figure_shows_the_record_and_channel_where_the_extension_ga
     residual the extended model reduces most (`most_improved_records`), not simply the first record:
     a cogging acts on the free tests' velocity, a ripple on the torque."""
     from hdjax import stack_experiments
-    from hdjax._plots import most_improved_records
+    from hdjax._workflows.plots import most_improved_records
     from helpers import sine_experiment
 
     exps = [sine_experiment("constrained", duration=0.3), sine_experiment("constrained", duration=0.3),

@@ -17,10 +17,10 @@ import optimistix as optx
 import pytest
 
 import hdjax
-import hdjax._fit
+import hdjax._fit.least_squares
 from hdjax import CostStop, block_covariance, fit_parameters, fit_per_experiment, identify_paper, load_dataset, write_dataset
-from hdjax._covariance import robust_covariance
-from hdjax._fit import _final_residual_and_jacobian, _stalled, _state_residual_and_jacobian, _stepped_least_squares
+from hdjax._fit.covariance import robust_covariance
+from hdjax._fit.least_squares import _final_residual_and_jacobian, _stalled, _state_residual_and_jacobian, _stepped_least_squares
 from hdjax.fit import run_fit
 from helpers import hd2, host_callbacks
 
@@ -116,7 +116,7 @@ def test_per_experiment_fits_give_the_trajectory_consistency(campaign, joint, mo
         assert res.consistency(k) < 0.05, k
     assert not active[4] and np.all(np.isnan(res.values[4]))
     # the batch runs in chunks (progress is reported between them); one chunk gives the same fits
-    monkeypatch.setattr(hdjax._fit, "PER_EXPERIMENT_REPORTS", 1)
+    monkeypatch.setattr(hdjax._fit.least_squares, "PER_EXPERIMENT_REPORTS", 1)
     whole = fit_per_experiment(joint.params, drive, batch, mask, free=free, max_steps=12)
     np.testing.assert_array_equal(whole.values, res.values)
     np.testing.assert_array_equal(whole.steps, res.steps)
@@ -214,7 +214,7 @@ def test_a_second_fit_of_the_same_shapes_reuses_the_compiled_program_and_gives_t
     options); the start, the data and the noise levels are arguments. A second fit on other data
     of the same shapes must reuse it and agree with a program built afresh (nothing of the first
     fit is baked into the compiled code)."""
-    from hdjax._fit import _joint_fit_program
+    from hdjax._fit.least_squares import _joint_fit_program
 
     p, drive, exps, _ = campaign
     first, second = hdjax.stack_experiments(exps[:3]), hdjax.stack_experiments(exps[3:])

@@ -193,7 +193,7 @@ def test_bad_input_messages():
 def test_commands_on_friction_dataset(tmp_path):
     """`fit` and `diagnose` dispatch a friction-only dataset and write the SPEC §3 keys."""
     from hdjax import load_dataset, write_dataset
-    from hdjax._friction_cli import run_diagnose, run_fit
+    from hdjax._workflows.friction import run_diagnose, run_fit
 
     exps = make_records(seed=6)
     write_dataset(tmp_path / "ds", name="synthetic-friction", drive=None, experiments=exps,
@@ -287,8 +287,8 @@ def test_low_speed_friction_fitted_by_presliding_law(tmp_path):
     and it has bristle damping σ1 and viscous σ2 (together < 0.004 N·m here), which the Dahl law
     lacks; its stiffness σ0 is LuGre's σ0 and its Coulomb level ≈ Fs."""
     from hdjax import load_dataset, write_dataset
-    from hdjax._friction_cli import run_fit
-    from hdjax._friction_lowspeed import fit_low_speed, low_speed_reason
+    from hdjax._fit.friction_low_speed import fit_low_speed, low_speed_reason
+    from hdjax._workflows.friction import run_fit
 
     exps = _lugre_records()
     pr = _problem(exps)
@@ -338,7 +338,7 @@ def _overfit_records(seed=8):
 def test_eq9_never_loses_to_coulomb_viscous():
     """The fit compares eq. 9 with its symmetric Coulomb + viscous special case on held-out data,
     reports both (raw and 1 Hz) and falls back when eq. 9's extra terms overfit."""
-    from hdjax._friction_cli import friction_fit_summary
+    from hdjax._workflows.friction import friction_fit_summary
 
     pr = _problem(_overfit_records())
     s = friction_fit_summary(pr, log=lambda m: None)
@@ -411,7 +411,7 @@ def test_stribeck_held_without_low_speed_samples_so_held_out_blocks_stay_bounded
 def test_friction_finding_parameters_carry_units():
     """Each parameter a friction-only finding reports has a unit (`parameter_units` in
     diagnosis.json; the report prints it)."""
-    from hdjax._friction_cli import _finding_units
+    from hdjax._workflows.friction import _finding_units
 
     assert _finding_units({"epsilon3": 0.1, "phi3": 1.0, "b12": 0.2, "phi12": 0.3}) == {
         "epsilon3": "-", "phi3": "rad", "b12": "N·m", "phi12": "rad"}  # fmt: skip

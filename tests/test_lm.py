@@ -1,4 +1,4 @@
-"""`hdjax._lm.MarquardtLM`, the friction fits' least-squares solver, as an optimistix solver value."""
+"""`hdjax._fit.lm.MarquardtLM`, the friction fits' least-squares solver, as an optimistix solver value."""
 
 import jax
 import jax.numpy as jnp
@@ -53,7 +53,7 @@ def test_composes_with_cost_stop_like_optimistix_levenberg_marquardt():
     `num_steps`; with `MarquardtLM` inside it stops a jittery problem by its Gauss–Newton-step rule
     at the optimum, and hands back the residual and Jacobian at the returned point."""
     from hdjax import CostStop
-    from hdjax._fit import _final_residual_and_jacobian
+    from hdjax._fit.least_squares import _final_residual_and_jacobian
 
     A = jnp.array([[1.0, 0.2], [0.3, 2.0], [1.0, 1.0], [0.5, -1.0]])
     b = A @ jnp.array([2.0, -1.0]) + jnp.array([0.01, -0.02, 0.015, -0.005])

@@ -1,4 +1,4 @@
-"""The base-model assumptions that the diagnosis may loosen (SPEC §4b, `hdjax._effects.MODEL_FORM`):
+"""The base-model assumptions that the diagnosis may loosen (SPEC §4b, `hdjax._model.effects.MODEL_FORM`):
 each is the identity at its start value, acts as documented, and has finite, correct derivatives
 there (they are fitted from zero)."""
 
@@ -10,8 +10,8 @@ import numpy as np
 from scipy.signal import lfilter
 
 import hdjax
-from hdjax._effects import viscous_law_factor
-from hdjax._plant import UniformCubicBlendInput, UniformLinearInput, _first_order_lag
+from hdjax._model.effects import viscous_law_factor
+from hdjax._plant.simulate import UniformCubicBlendInput, UniformLinearInput, _first_order_lag
 from helpers import hd1, sine_experiment
 
 SIM = hdjax.Simulator(fixed_step=2.5e-4)  # fixed steps: the discrete solution is smooth in the parameters
@@ -95,14 +95,14 @@ def test_input_reconstruction_is_the_line_at_zero_and_the_catmull_rom_cubic_at_o
 
 
 def test_input_reconstruction_follows_an_independent_bench_current_between_samples():
-    """On data hdjax did not make (`hdjax._bench`: its own fixed-step integrator and exact
+    """On data hdjax did not make (`hdjax._testbench.independent`: its own fixed-step integrator and exact
     stick–slip; every other deviation off so that only the input path between samples differs),
     a 500 Hz locked chirp and square wave simulated at the bench's true parameters from the
     sampled current: the Catmull–Rom path (λ = 1) follows the bench's continuous current where
     straight lines between samples leave the motor velocity several noise levels off at the
     square wave's edges and the chirp's fast end (measured 2026-11-28: chirp 1.14 → 0.02 σ RMS,
     square 0.72 → 0.45 σ RMS; peak square-edge misfit 4.6 → 0.6 σ)."""
-    from hdjax._bench import Deviations, simulate_dataset
+    from hdjax._testbench.independent import Deviations, simulate_dataset
 
     recs, truth = simulate_dataset(drive="hd1", seed=6008, n_locked=8, n_free=0, sample_rate=500.0,
                                    low_speed="stick_slip", deviations=Deviations.none())
@@ -159,7 +159,7 @@ def eqx_set(effects, field, value):
     scalar field names are unique over the terms); the active set is left as it is."""
     import equinox as eqx
 
-    from hdjax._effects import SCALAR_FIELDS
+    from hdjax._model.effects import SCALAR_FIELDS
 
     owner = next(name for name, fields in SCALAR_FIELDS.items() if field in fields)
     return eqx.tree_at(lambda e: getattr(e.term(owner), field), effects, jnp.asarray(value, dtype=float))

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from hdjax import PAPER_HD2_SI, PARAMETER_NAMES, Drive, PaperIdentification, Parameters, identify_paper, make_experiment
-from hdjax._paper_id import _consistency
+from hdjax._fit.paper import _consistency
 
 # HD2-like values in SI (paper Table I, K1 and Tst read per degree)
 TRUE = dict(alpha=0.5, K1=5970.0, Tst=60.2, Jeff=1e-4, Tvp=1.8e-3, Tvn=2.1e-3, Tsp=0.075, Tsn=0.033,

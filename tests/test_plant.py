@@ -7,7 +7,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import hdjax
-import hdjax._sharding
+import hdjax._plant.sharding
 from helpers import hd1, hd2, sine_experiment
 
 
@@ -80,7 +80,7 @@ def test_batch_with_padding_matches_single_runs():
 def test_both_batchings_give_the_single_runs(how, monkeypatch):
     """`vmap` (accelerators) and `lax.map` (CPU default) over experiments: same trajectories."""
     monkeypatch.setenv("HDJAX_EXPERIMENT_BATCHING", how)
-    assert hdjax._sharding.experiment_batching() == how
+    assert hdjax._plant.sharding.experiment_batching() == how
     p, drive = hd2()
     exps = [sine_experiment("constrained", duration=0.2), sine_experiment("free", freq=5.0, duration=0.15)]
     trajs = jax.jit(lambda p_, b: hdjax.simulate_batch(p_, drive, b))(p, hdjax.stack_experiments(exps))
@@ -112,14 +112,14 @@ def test_at_sample_times_takes_the_nearest_step():
     time = jnp.asarray([0.0, 0.001, 0.002, 0.003])
     ts = jnp.asarray([0.0, 0.0004, np.nextafter(0.001, 0.0), 0.0015, np.nextafter(0.002, 1.0), 0.003, np.inf, np.inf])
     ys = (jnp.arange(8.0),)
-    (got,) = hdjax._plant._at_sample_times(ts, ys, time)
+    (got,) = hdjax._plant.simulate._at_sample_times(ts, ys, time)
     np.testing.assert_array_equal(np.asarray(got), [0.0, 2.0, 4.0, 5.0])
 
 
 def test_bad_batching_setting_is_named(monkeypatch):
     monkeypatch.setenv("HDJAX_EXPERIMENT_BATCHING", "pmap")
     with pytest.raises(ValueError, match="HDJAX_EXPERIMENT_BATCHING"):
-        hdjax._sharding.experiment_batching()
+        hdjax._plant.sharding.experiment_batching()
 
 
 def test_jacfwd_matches_central_differences_for_all_parameters():
@@ -153,7 +153,7 @@ def test_jacfwd_matches_central_differences_for_all_parameters():
 
 
 def test_a_record_that_starts_stuck_starts_at_rest(tmp_path):
-    """Independent bench (`hdjax._bench`: its own integrator and exact stick–slip; all deviations off,
+    """Independent bench (`hdjax._testbench.independent`: its own integrator and exact stick–slip; all deviations off,
     so the paper model with the true parameters is exact up to white sensor noise). In this locked
     record (seed 801, HD1, record 1) the motor is at rest for the first 0.2 s, but the tachometer's
     first samples happen to trend from −0.05 rad/s: a line fit calls that motion (3.3 standard

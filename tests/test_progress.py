@@ -11,8 +11,8 @@ import numpy as np
 from rich.console import Console
 
 import hdjax
-from hdjax._diagnose_report import DEFAULTS, DiagnosisProgress
-from hdjax._progress import RunLog, current, task
+from hdjax._workflows.diagnose import DEFAULTS, DiagnosisProgress
+from hdjax._workflows.progress import RunLog, current, task
 from helpers import hd2, sine_experiment
 
 

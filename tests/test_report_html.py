@@ -14,7 +14,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
-from hdjax._html import markdown_to_html, write_report_html
+from hdjax._workflows.html import markdown_to_html, write_report_html
 
 
 def _chromium() -> str | None:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 import hdjax
-from hdjax import _rig, load_dataset
+from hdjax import load_dataset
+from hdjax._testbench import rig as _rig
 
 TINY = {"n_constrained": 2, "n_free": 2, "duration": 0.3}
 

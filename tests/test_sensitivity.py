@@ -9,8 +9,8 @@ import pytest
 
 import hdjax
 from hdjax import load_dataset, write_dataset
-from hdjax._sensitivity import fisher_summary, scaled_parameters, sensitivities
-from hdjax._sensitivity_workflow import _options, _standard_errors, run_sensitivity, workflow_simulator
+from hdjax._fit.sensitivity import fisher_summary, scaled_parameters, sensitivities
+from hdjax._workflows.sensitivity import _options, _standard_errors, run_sensitivity, workflow_simulator
 from helpers import hd2, sine_experiment
 
 

@@ -23,7 +23,7 @@ sys.path.insert(0, sys.argv[1])
 from helpers import hd2
 import hdjax
 from hdjax import fit_parameters
-from hdjax._sharding import shard_experiments
+from hdjax._plant.sharding import shard_experiments
 
 p, drive = hd2()
 rng = np.random.default_rng(0)
@@ -114,7 +114,7 @@ def test_use_host_devices_sets_the_count_before_jax_starts_and_import_starts_not
         "import sys, hdjax, hdjax.bench, hdjax.fit, hdjax.diagnose\n"
         "from jax._src import xla_bridge\n"
         "started = xla_bridge.backends_are_initialized() or 'matplotlib' in sys.modules\n"
-        "from hdjax._sharding import use_host_devices\n"
+        "from hdjax._plant.sharding import use_host_devices\n"
         "n = use_host_devices(3)\n"
         "again = use_host_devices(5)\n"
         "import jax\n"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import hdjax
-from hdjax._solver import GAMMA, RODAS3, ROS34PW2
+from hdjax._plant.rosenbrock import GAMMA, RODAS3, ROS34PW2
 from helpers import hd2, host_callbacks, sine_experiment
 
 # ------------------------------------------------------------------------------------------------

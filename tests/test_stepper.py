@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import hdjax
-from hdjax._effects import RateIndependentHysteresis
+from hdjax._model.effects import RateIndependentHysteresis
 from helpers import hd2, sine_experiment
 
 jax.config.update("jax_enable_x64", True)

@@ -1,4 +1,4 @@
-"""The diagnosis's torque-balance evidence (`hdjax._evidence.torque_balance_spectrum` and
+"""The diagnosis's torque-balance evidence (`hdjax._discrepancy.evidence.torque_balance_spectrum` and
 `torque_balance_cv`) on free-motion records written out here by hand: eq. 8 with a plain
 Coulomb + viscous friction (no Stribeck, no smoothing), a known cogging or position-dependent
 friction term, and white sensor noise on current, torque and velocity. No hdjax plant or solver
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from hdjax import Drive, Parameters
-from hdjax._evidence import torque_balance_cv, torque_balance_spectrum
+from hdjax._discrepancy.evidence import torque_balance_cv, torque_balance_spectrum
 
 jax.config.update("jax_enable_x64", True)
 

@@ -10,7 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hdjax import TorqueGains, _bench, _loopshape as ls, sine_reference, step_reference
+from hdjax import TorqueGains, sine_reference, step_reference
+from hdjax._control import loopshape as ls
+from hdjax._testbench import independent as _bench
 from helpers import hd1
 
 jax.config.update("jax_enable_x64", True)
@@ -111,12 +113,13 @@ def test_bench_is_rebuilt_from_its_truth(tmp_path):
 
 
 def test_user_data_is_validated_on_the_identified_model_and_says_so(tmp_path, monkeypatch):
-    """A dataset without a truth.yaml from hdjax._bench (here the shipped HD1 records without their
+    """A dataset without a truth.yaml from hdjax._testbench.independent (here the shipped HD1 records without their
     truth file): report and figure titles say 'identified model', never 'bench'. The
     heavy numerics are replaced by stand-ins; only the wording path is exercised."""
     import matplotlib.figure
 
-    from hdjax import LoopTrajectory, TuneResult, _tune, load_dataset
+    from hdjax import LoopTrajectory, TuneResult, load_dataset
+    from hdjax._workflows import tune as _tune
 
     # a dataset without the bench's truth (the shipped ones come from the bench since 2026-11-26)
     src = pathlib.Path(__file__).parents[1] / "data" / "hd1"
@@ -180,8 +183,8 @@ def test_user_data_is_validated_on_the_identified_model_and_says_so(tmp_path, mo
 def test_plant_sets_carry_the_friction_uncertainty():
     """Plant set 0 is the identified plant; the others have every eq. 9 friction term scaled by one
     common factor spread evenly over 1 ± u, and the rest of the parameters untouched."""
-    from hdjax._model import EQ9_COEFFICIENTS
-    from hdjax._tune import draw_parameter_sets
+    from hdjax._model.paper import EQ9_COEFFICIENTS
+    from hdjax._workflows.tune import draw_parameter_sets
 
     p, _ = hd1()
     sets = draw_parameter_sets(p, {}, 6, seed=0, friction_uncertainty=0.2)

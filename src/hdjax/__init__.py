@@ -6,14 +6,7 @@ Float64 is not switched on here: commands, tests and scripts call
 
 import importlib.metadata
 
-from ._artifacts import (
-    effects_from_dict as effects_from_dict,
-    effects_to_dict as effects_to_dict,
-    read_extended_model as read_extended_model,
-    read_fit_json as read_fit_json,
-)
-from ._config import ConfigError as ConfigError
-from ._control import (
+from ._control.closed_loop import (
     GainScaling as GainScaling,
     LoopTrajectory as LoopTrajectory,
     Plant as Plant,
@@ -31,11 +24,44 @@ from ._control import (
     tune_gains as tune_gains,
     ziegler_nichols_pi as ziegler_nichols_pi,
 )
-from ._covariance import block_covariance as block_covariance, time_blocks as time_blocks
-from ._data import Dataset as Dataset, DatasetError as DatasetError, load_config as load_config, load_dataset as load_dataset
-from ._dataset_write import write_dataset as write_dataset
-from ._diagnose import Diagnosis as Diagnosis, diagnose as diagnose_effects  # noqa: F401 (public alias)
-from ._effects import (
+from ._data.experiment import (
+    Experiment as Experiment,
+    FrictionExperiment as FrictionExperiment,
+    make_experiment as make_experiment,
+    make_friction_experiment as make_friction_experiment,
+    select_experiments as select_experiments,
+    stack_experiments as stack_experiments,
+    take_experiments as take_experiments,
+    unstack_experiments as unstack_experiments,
+)
+from ._data.load import Dataset as Dataset, DatasetError as DatasetError, load_config as load_config, load_dataset as load_dataset
+from ._data.write import write_dataset as write_dataset
+from ._discrepancy.evidence import covariate_drifts as covariate_drifts
+from ._discrepancy.friction import diagnose_friction as diagnose_friction
+from ._discrepancy.loop import Diagnosis as Diagnosis, diagnose as diagnose_effects  # noqa: F401 (public alias)
+from ._discrepancy.significance import FRICTION_RULES as FRICTION_RULES, OUTPUT_ERROR_RULES as OUTPUT_ERROR_RULES, Significance as Significance
+from ._fit.covariance import block_covariance as block_covariance, time_blocks as time_blocks
+from ._fit.friction import (
+    FrictionProblem as FrictionProblem,
+    filtered_rms as filtered_rms,
+    fit_coulomb_viscous as fit_coulomb_viscous,
+    rms_stats as rms_stats,
+)
+from ._fit.least_squares import (
+    DEFAULT_FREE as DEFAULT_FREE,
+    POSITIVE as POSITIVE,
+    CostStop as CostStop,
+    experiment_residuals as experiment_residuals,
+    fit_noise_levels as fit_noise_levels,
+    fit_parameters as fit_parameters,
+    fit_per_experiment as fit_per_experiment,
+    make_parameter_map as make_parameter_map,
+    noise_levels as noise_levels,
+)
+from ._fit.lm import MarquardtLM as MarquardtLM
+from ._fit.paper import PAPER_HD2_SI as PAPER_HD2_SI, PaperIdentification as PaperIdentification, identify_paper as identify_paper
+from ._fit.parameterisation import Entry as Entry, Parameterisation as Parameterisation, parameterisation as parameterisation
+from ._model.effects import (
     EFFECT_NAMES as EFFECT_NAMES,
     MAX_ORDER as MAX_ORDER,
     TERMS as TERMS,
@@ -59,44 +85,13 @@ from ._effects import (
     TorqueSensorRipple as TorqueSensorRipple,
     ViscousFrictionLaw as ViscousFrictionLaw,
 )
-from ._evidence import covariate_drifts as covariate_drifts
-from ._experiment import (
-    Experiment as Experiment,
-    FrictionExperiment as FrictionExperiment,
-    make_experiment as make_experiment,
-    make_friction_experiment as make_friction_experiment,
-    select_experiments as select_experiments,
-    stack_experiments as stack_experiments,
-    take_experiments as take_experiments,
-    unstack_experiments as unstack_experiments,
-)
-from ._fit import (
-    DEFAULT_FREE as DEFAULT_FREE,
-    POSITIVE as POSITIVE,
-    CostStop as CostStop,
-    experiment_residuals as experiment_residuals,
-    fit_noise_levels as fit_noise_levels,
-    fit_parameters as fit_parameters,
-    fit_per_experiment as fit_per_experiment,
-    make_parameter_map as make_parameter_map,
-    noise_levels as noise_levels,
-)
-from ._friction import (
+from ._model.friction_only import (
     FRICTION_NAMES as FRICTION_NAMES,
     FrictionParameters as FrictionParameters,
     FrictionStructure as FrictionStructure,
     friction_model_torque as friction_model_torque,
 )
-from ._friction_cli import friction_diagnosis_doc as friction_diagnosis_doc
-from ._friction_diag import diagnose_friction as diagnose_friction
-from ._friction_fit import (
-    FrictionProblem as FrictionProblem,
-    filtered_rms as filtered_rms,
-    fit_coulomb_viscous as fit_coulomb_viscous,
-    rms_stats as rms_stats,
-)
-from ._lm import MarquardtLM as MarquardtLM
-from ._model import (
+from ._model.paper import (
     PARAMETER_NAMES as PARAMETER_NAMES,
     PARAMETER_UNITS as PARAMETER_UNITS,
     Drive as Drive,
@@ -107,18 +102,9 @@ from ._model import (
     friction_torque as friction_torque,
     motor_acceleration as motor_acceleration,
 )
-from ._paper_id import PAPER_HD2_SI as PAPER_HD2_SI, PaperIdentification as PaperIdentification, identify_paper as identify_paper
-from ._parameterisation import Entry as Entry, Parameterisation as Parameterisation, parameterisation as parameterisation
-from ._plant import (
-    PLANT_W_METHOD as PLANT_W_METHOD,
-    Simulator as Simulator,
-    Trajectory as Trajectory,
-    initial_state as initial_state,
-    plant_stiff_part as plant_stiff_part,
-    simulate as simulate,
-    simulate_batch as simulate_batch,
-)
-from ._sharding import (
+from ._model.smooth import smooth_sign as smooth_sign, smooth_signed_power as smooth_signed_power, smooth_step as smooth_step
+from ._plant.rosenbrock import FirstStep as FirstStep, Rodas3 as Rodas3, Ros34PW2 as Ros34PW2
+from ._plant.sharding import (
     COMPILATION_CACHE_ENV as COMPILATION_CACHE_ENV,
     HOST_DEVICES_ENV as HOST_DEVICES_ENV,
     available_cores as available_cores,
@@ -128,10 +114,24 @@ from ._sharding import (
     use_compilation_cache as use_compilation_cache,
     use_host_devices as use_host_devices,
 )
-from ._significance import FRICTION_RULES as FRICTION_RULES, OUTPUT_ERROR_RULES as OUTPUT_ERROR_RULES, Significance as Significance
-from ._smooth import smooth_sign as smooth_sign, smooth_signed_power as smooth_signed_power, smooth_step as smooth_step
-from ._solver import FirstStep as FirstStep, Rodas3 as Rodas3, Ros34PW2 as Ros34PW2
-from ._stepper import VelocityImplicit as VelocityImplicit
+from ._plant.simulate import (
+    PLANT_W_METHOD as PLANT_W_METHOD,
+    Simulator as Simulator,
+    Trajectory as Trajectory,
+    initial_state as initial_state,
+    plant_stiff_part as plant_stiff_part,
+    simulate as simulate,
+    simulate_batch as simulate_batch,
+)
+from ._plant.stepper import VelocityImplicit as VelocityImplicit
+from ._workflows.artifacts import (
+    effects_from_dict as effects_from_dict,
+    effects_to_dict as effects_to_dict,
+    read_extended_model as read_extended_model,
+    read_fit_json as read_fit_json,
+)
+from ._workflows.config import ConfigError as ConfigError
+from ._workflows.friction import friction_diagnosis_doc as friction_diagnosis_doc
 
 try:
     __version__ = importlib.metadata.version("hdjax")

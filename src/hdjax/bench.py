@@ -1,7 +1,7 @@
-"""The independent virtual test bench (public entry points of `hdjax._bench`): datasets that
+"""The independent virtual test bench (public entry points of `hdjax._testbench.independent`): datasets that
 hdjax's identification, diagnosis and tuning are judged on, made without hdjax's plant, solver or
 model code (numpy fixed-step integrator, stick–slip friction with breakaway, a current loop,
-sensor dynamics, drives drawn around HD1/HD2; see the `hdjax._bench` module docstring for what
+sensor dynamics, drives drawn around HD1/HD2; see the `hdjax._testbench.independent` module docstring for what
 differs from hdjax's plant).
 
 - `make_dataset(out_dir, *, drive, seed, ..., effects, deviations)`: write a SPEC §2 dataset folder
@@ -11,7 +11,7 @@ differs from hdjax's plant).
 - `Bench`, `pi_law`: closed-loop runs of a controller on the bench a dataset came from.
 """
 
-from ._bench import (
+from ._testbench.independent import (
     Bench as Bench,
     Deviations as Deviations,
     Station as Station,

@@ -5,7 +5,7 @@ figures (default folder results/<name>-diagnosis)."""
 
 import sys
 
-from ._cli import command_main
+from ._workflows.cli import command_main
 
 main = command_main("diagnose")
 

@@ -6,8 +6,8 @@ run.log and figures (SPEC §3). Friction-only datasets get the eq. 9 fit.
 
 import sys
 
-from ._cli import command_main
-from ._identify import run_fit as run_fit
+from ._workflows.cli import command_main
+from ._workflows.fit import run_fit as run_fit
 
 main = command_main("fit")
 

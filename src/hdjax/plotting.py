@@ -2,7 +2,7 @@
 imported with this module, never by `import hdjax`). Every figure is written atomically as a PNG:
 labelled axes with units, legends, measured against simulated."""
 
-from ._plots import (
+from ._workflows.plots import (
     diagnosis_figures as diagnosis_figures,
     fit_figures as fit_figures,
     friction_cv_figure as friction_cv_figure,

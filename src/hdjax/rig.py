@@ -1,4 +1,4 @@
-"""The plant-based virtual rig (public entry points of `hdjax._rig`): the paper's two stations and
+"""The plant-based virtual rig (public entry points of `hdjax._testbench.rig`): the paper's two stations and
 their 20 + 30 experiment campaigns, simulated with hdjax's **own plant** (`hdjax.simulate`) plus
 sensor noise.
 
@@ -14,7 +14,7 @@ parameters by the fitter itself), and say so there.
 - `hide_effect(name, magnitude, *, station, ...)`: an `Effects` with one SPEC §4 effect.
 """
 
-from ._rig import (
+from ._testbench.rig import (
     CurrentProfile as CurrentProfile,
     Run as Run,
     Station as Station,

@@ -11,7 +11,7 @@ belongs to the same dataset, else the paper's identification (section III regres
 
 import sys
 
-from ._cli import command_main
+from ._workflows.cli import command_main
 
 main = command_main("sensitivity")
 

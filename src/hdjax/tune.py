@@ -10,8 +10,8 @@ validation cost of given gains, for scripts."""
 
 import sys
 
-from ._cli import command_main
-from ._tune import bench_tracking_cost as bench_tracking_cost, run_tune as run_tune
+from ._workflows.cli import command_main
+from ._workflows.tune import bench_tracking_cost as bench_tracking_cost, run_tune as run_tune
 
 main = command_main("tune")
 

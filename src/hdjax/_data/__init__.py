@@ -1,0 +1,3 @@
+"""Data: datasets read and checked (`load`), experiments as batched Modules (`experiment`),
+datasets written (`write`).
+"""

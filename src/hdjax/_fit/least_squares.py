@@ -1,0 +1,836 @@
+r"""Joint trajectory-error identification with optimistix Levenberg–Marquardt.
+
+The residual is the difference between simulated and measured trajectories of *all* experiments
+at once (torque, wave-generator velocity, and output position in free motion), each channel
+divided by its noise level, so that the cost is a log-likelihood under white Gaussian noise:
+
+$$r = \big[(T_{sim}-T)/\sigma_T,\ (\omega_{sim}-\omega)/\sigma_\omega,\ (\theta_{o,sim}-\theta_o)/\sigma_\theta\big].$$
+
+Parameters are fitted in an unconstrained space: positive ones (`K1, Tst, Jeff, Tvp, Tvn, Tsp,
+Tsn, Tss2`) through their logarithm, `alpha` through a logistic map onto (0.05, 1.5), the signed
+Stribeck amplitudes scaled by their start value. Standard errors come from the Gauss–Newton
+covariance $s^2 (J^\top J)^{-1}$ with $s^2$ the reduced chi-square, mapped to physical units by the
+delta method.
+
+Free motion has a rigid-body mode: the output *position* integrates any velocity error. The fit
+stays well posed because (1) each simulation starts from the measured state (local line fits of
+the first samples, `hdjax.initial_state`), (2) the wave-generator velocity — not an integrated
+position — carries the rigid-body information, and (3) the output-position residual is projected off the rigid-body
+components {offset, constant velocity} of each experiment before weighting, so an initial-state
+error cannot dominate it; what remains (torsion and acceleration history) carries the information.
+"""
+
+import dataclasses
+import functools
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+from numpy.typing import ArrayLike
+
+from .._data.experiment import Experiment
+from .._model.effects import Effects
+from .._model.paper import PARAMETER_NAMES, Drive, Parameters
+from .._plant.sharding import (
+    experiment_batching,
+    experiment_mesh,
+    for_each_experiment,
+    map_experiments,
+    pad_experiments,
+    replicated,
+    shard_experiments,
+)
+from .._plant.simulate import Simulator, is_fixed_cost, simulate
+from .._workflows.progress import count_progress, lm_progress
+from .covariance import robust_covariance, time_blocks, white_covariance
+from .lm import MarquardtLM
+from .paper import _consistency
+from .parameterisation import Entry, Parameterisation, parameterisation
+
+CHANNELS = ("torque", "motor_velocity", "output_position")
+POSITIVE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tss2")
+ALPHA_BOUNDS = (0.05, 1.5)
+DEFAULT_FREE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")
+
+
+def make_parameter_map(p0: Parameters, free) -> Parameterisation:
+    """The paper parameters' `Parameterisation` for LM: positive parameters (`POSITIVE`) on a log
+    scale, α by a logit inside `ALPHA_BOUNDS`, the Stribeck amplitudes (signed) scaled by
+    max(|start|, 1e-3)."""
+    free = tuple(free)
+    unknown = [k for k in free if k not in PARAMETER_NAMES]
+    if unknown:
+        raise ValueError(f"`fit_parameters`: unknown parameter(s) {unknown} in `free`; choose from {list(PARAMETER_NAMES)}.")
+    entries, scale = [], []
+    for k in free:
+        v = float(getattr(p0, k))
+        if k in POSITIVE:
+            if not v > 0:
+                raise ValueError(f"`fit_parameters`: start value of {k} must be > 0 (it is fitted on a log scale), got {v}.")
+            entries.append(Entry(k, transform="log"))
+            scale.append(1.0)
+        elif k == "alpha":
+            if not ALPHA_BOUNDS[0] < v < ALPHA_BOUNDS[1]:
+                raise ValueError(f"`fit_parameters`: start value of alpha must lie in {ALPHA_BOUNDS}, got {v}.")
+            entries.append(Entry(k, transform="logit", bounds=ALPHA_BOUNDS))
+            scale.append(1.0)
+        else:
+            entries.append(Entry(k))
+            scale.append(max(abs(v), 1e-3))
+    return parameterisation(entries, np.asarray(scale))
+
+
+def white_noise_level(x: ArrayLike) -> float:
+    """White-noise std of a sampled signal: the second difference of a smooth signal plus white
+    noise of std σ has std $\\sqrt6\\,\\sigma$."""
+    return float(np.std(np.diff(np.asarray(x), 2)) / np.sqrt(6.0))
+
+
+def noise_levels(batch: Experiment) -> Float[Array, " 3"]:
+    """Per-channel white-noise level (torque N·m, velocity rad/s, output position rad) estimated from
+    the data itself (`white_noise_level`). Median over experiments; position only over free-motion
+    records."""
+    out = []
+    m = np.asarray(batch.mask)
+    free = np.asarray(batch.free) > 0
+    for name in CHANNELS:
+        x = np.asarray(getattr(batch, name))
+        vals = []
+        for e in range(x.shape[0]):
+            if name == "output_position" and not free[e]:
+                continue
+            xe = x[e][m[e]]
+            if len(xe) > 10:
+                v = white_noise_level(xe)
+                if name == "output_position":
+                    # a quantised encoder on a slow signal has mostly-zero second differences: floor
+                    # at the quantisation noise q/sqrt(12), q = smallest non-zero step
+                    steps = np.abs(np.diff(xe))
+                    steps = steps[steps > 0]
+                    if len(steps):
+                        v = max(v, float(np.min(steps)) / np.sqrt(12.0))
+                vals.append(v)
+        v = float(np.median(vals)) if vals else 1.0
+        out.append(max(v, 1e-12))
+    return jnp.asarray(out)
+
+
+def process_noise(
+    simulate, batch: Experiment, r_ref: Float[np.ndarray, "exp 3 time"], *, realisations: int = 2, seed: int = 0
+) -> Float[np.ndarray, "realisation exp 3 time"]:
+    """Change of the (weighted) residuals when white noise of the recorded current's own noise
+    level is added to the current, shape (realisations, exp, channel, time): samples of the process
+    noise that the current's sensor noise puts into every simulation (the simulation is driven by
+    the recorded current). `simulate(batch)` returns the residuals; `r_ref` is its value on `batch`."""
+    m = np.asarray(batch.mask)
+    cur = np.asarray(batch.current)
+    # records too short for a noise estimate (under 11 samples) do not vote
+    level = float(np.median([white_noise_level(cur[e][m[e]]) for e in range(cur.shape[0]) if m[e].sum() > 10] or [0.0]))
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(realisations):
+        noisy = eqx.tree_at(lambda b: b.current, batch, jnp.asarray(cur + level * rng.standard_normal(cur.shape) * m))
+        out.append(np.asarray(simulate(noisy)) - r_ref)
+    return np.stack(out)
+
+
+def process_noise_levels(
+    p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator, realisations: int = 2, seed: int = 0
+) -> Float[np.ndarray, " 3"]:
+    """Per-channel RMS of the *process noise* (same units as `noise_levels`, `process_noise` at the
+    parameters `p`): how far the simulation of each channel moves when white noise of the recorded
+    current's own noise level is added to the current. In free motion the output position does a
+    random walk (after the rigid-body projection of `experiment_residuals`) that can be 10³× the
+    encoder's noise. Position over free records only."""
+    simulate = lambda b: _unit_residuals(p, drive, b, simulator)
+    d = process_noise(simulate, batch, np.asarray(simulate(batch)), realisations=realisations, seed=seed)
+    m = np.asarray(batch.mask)
+    free = m & (np.asarray(batch.free)[:, None] > 0)
+    ms = [np.mean(d[:, :, 0][:, m] ** 2), np.mean(d[:, :, 1][:, m] ** 2),
+          np.mean(d[:, :, 2][:, free] ** 2) if free.any() else 0.0]
+    return np.sqrt(np.asarray(ms))
+
+
+@eqx.filter_jit
+def _unit_residuals(p, drive, batch, simulator):
+    return for_each_experiment(lambda e: experiment_residuals(p, drive, e, jnp.ones(3), simulator), batch,
+                               fixed_cost=is_fixed_cost(simulator))
+
+
+def fit_noise_levels(p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator) -> Float[Array, " 3"]:
+    """The weights of a trajectory-error fit: per channel √(sensor² + process²), the sensor noise
+    from the data (`noise_levels`) and the process noise that the recorded current's noise puts into
+    the simulation at `p` (`process_noise_levels`). Weighting the free-motion output position by the
+    encoder noise alone let the current-noise random walk dominate the cost (χ²/n ≈ 380 at the true
+    parameters on an independent-bench dataset) and trapped the fit in a local minimum of the
+    Stribeck amplitudes; with this weighting it converged to them (benchmarks/RESULTS.md)."""
+    sensor = np.asarray(noise_levels(batch))
+    return jnp.asarray(np.sqrt(sensor**2 + process_noise_levels(p, drive, batch, simulator=simulator) ** 2))
+
+
+def experiment_residuals(
+    p: Parameters,
+    drive: Drive,
+    exp: Experiment,
+    sigma: Float[Array, " 3"],
+    simulator: Simulator,
+    effects: Effects = Effects(),
+) -> Float[Array, "3 time"]:
+    """Noise-weighted residuals of one experiment, shape (3, time); zero on padding and on channels
+    that were not measured."""
+    tr = simulate(p, drive, exp, effects=effects, simulator=simulator)
+    m = exp.mask
+    use_pos = exp.free * exp.has_output_position
+    r = jnp.stack(
+        [
+            (tr.torque - exp.torque) / sigma[0],
+            (tr.motor_velocity - exp.motor_velocity) / sigma[1],
+            use_pos * (tr.output_position - exp.output_position) / sigma[2],
+        ]
+    )
+    r = jnp.where(m[None, :], r, 0.0)
+    # rigid-body mode: project the output-position residual off {1, t} (offset and constant
+    # velocity), which an initial-state error adds and which carries no parameter information
+    w = m.astype(float)
+    tt = (exp.time - exp.time[0]) * w
+    basis = jnp.stack([w, tt - jnp.sum(tt) / jnp.maximum(jnp.sum(w), 1.0) * w])
+    coef = (basis @ r[2]) / jnp.maximum(jnp.sum(basis**2, axis=1), 1e-300)
+    r = r.at[2].set(r[2] - coef @ basis)
+    # a failed solve gives a large finite residual (never NaN), so LM backs off
+    return jnp.where(tr.success & jnp.all(jnp.isfinite(r)), r, 1e3)
+
+
+def nrmse(sim: Float[np.ndarray, " time"], meas: Float[np.ndarray, " time"]) -> float:
+    """RMS(sim − meas) / RMS(meas − mean(meas)) (SPEC §3)."""
+    d = np.sqrt(np.mean((sim - meas) ** 2))
+    s = np.sqrt(np.mean((meas - np.mean(meas)) ** 2))
+    return float(d / s) if s > 0 else float("nan")
+
+
+class TrajectoryFit(eqx.Module):
+    """Result of `fit_parameters`.
+
+    **Attributes:**
+
+    - `params`: fitted `Parameters` (SI).
+    - `free`: names of the fitted parameters.
+    - `std_error`: standard error per fitted parameter (SI), robust to a misfit that is correlated
+      in time (`std_error_method`, see `block_covariance`).
+    - `std_error_white`: the Gauss–Newton standard error, σ²(JᵀJ)⁻¹ with σ² the reduced χ²: right
+      only when the residuals are white; on a bench where the model is not exact it is too small
+      (`fit_parameters`'s `se_block`).
+    - `std_error_method`: "block_sandwich" (`std_error` from `block_covariance`) or "white" (too
+      few blocks for it; `std_error` is then `std_error_white`).
+    - `se_block`: the block length of `block_covariance` (s).
+    - `correlation`: correlation matrix of the fitted parameters (order of `free`), from the
+      covariance that gives `std_error`.
+    - `chi2_reduced`: residual sum of squares / (n − p); ≈1 when the model explains the data
+      to the noise level.
+    - `converged`: LM stopped by one of its rules (see `stop_reason`) within `max_steps`.
+    - `steps`: LM iterations.
+    - `sigma`: channel noise levels used as weights.
+    - `jacobian_singular_values`: of the weighted Jacobian in the unconstrained space.
+    - `stop_reason`: "tolerance" (optimistix's test), "gauss_newton_step_small" (the remaining
+      Gauss–Newton step is under `step_se_tol` standard errors), "cost_stalled" (`STALL_WINDOW` LM
+      steps lowered ½χ² by less than `cost_rtol`), "predicted_gain_small" (the full Gauss–Newton
+      step predicts a decrease under `gain_rtol` of ½χ²), see `CostStop`; or "max_steps".
+    - `result`: optimistix's result code (`optx.RESULTS.successful` when `converged`; otherwise
+      the reason, e.g. `optx.RESULTS.nonlinear_max_steps_reached`).
+    """
+
+    params: Parameters
+    free: tuple[str, ...] = eqx.field(static=True)
+    std_error: dict[str, float]
+    std_error_white: dict[str, float]
+    std_error_method: str
+    se_block: float
+    correlation: np.ndarray
+    chi2_reduced: float
+    converged: bool
+    steps: int
+    sigma: np.ndarray
+    jacobian_singular_values: np.ndarray
+    stop_reason: str
+    result: optx.RESULTS
+
+
+STALL_WINDOW = 3
+"""LM steps between two checks of the cost-stall rule (`_stalled`)."""
+
+
+def _stalled(cost_before, cost_after, cost_rtol):
+    """The stopping rule used on top of optimistix's: `STALL_WINDOW` LM steps lowered ½χ² by less
+    than `cost_rtol` of its value (or raised it). Works on floats and on JAX scalars.
+
+    optimistix stops when the parameter change *and the change of every residual* fall below its
+    tolerances (max norm). The residual of an adaptive ODE solve jitters under parameter changes at
+    about its relative tolerance (½χ² moves by ~1 in 10⁵ at rtol 1e-5, measured on HD2), so that test
+    is never met once the poorly determined Stribeck amplitudes wander inside their standard error;
+    the fit then ran to its step cap with the cost flat to 5 digits after 6 steps."""
+    return jnp.logical_not(cost_after < cost_before * (1.0 - cost_rtol))
+
+
+def _gauss_newton_step_in_se(residual, jacobian):
+    """Length of the full Gauss–Newton step from here, in standard errors (Mahalanobis):
+    m² = δᵀJᵀJδ / s², δ = argmin ‖J δ + r‖ (minimum norm, so a rank-deficient J is fine),
+    s² = ‖r‖²/(n − p) the reduced χ² over the non-zero residuals; and the decrease of ½χ² that step
+    predicts, ½‖Jδ‖² = ½m²s². Built from the Jacobian, not from a difference of two residuals, so
+    it does not see the ODE solver's jitter. Returns (m, predicted decrease)."""
+    delta = jnp.linalg.lstsq(jacobian, -residual)[0]
+    n = jnp.sum(residual != 0.0)
+    s2 = jnp.sum(residual**2) / jnp.maximum(n - jacobian.shape[1], 1).astype(residual.dtype)
+    jd2 = jnp.sum((jacobian @ delta) ** 2)
+    return jnp.sqrt(jd2 / jnp.maximum(s2, 1e-300)), 0.5 * jd2
+
+
+class _StopState(eqx.Module):
+    inner: object
+    checkpoint: jax.Array  # ½χ² at the last stall check (inf before the first)
+    reason: jax.Array  # index into STOP_REASONS (0: none of CostStop's rules)
+    cost: jax.Array  # ½χ² at the accepted point after the last step (inf before the first)
+    step_se: jax.Array  # the Gauss–Newton step left there, in standard errors (inf before the first)
+
+
+STOP_REASONS = ("tolerance", "gauss_newton_step_small", "cost_stalled", "predicted_gain_small")
+
+
+class CostStop(optx.AbstractLeastSquaresSolver):
+    """A Gauss–Newton-type optimistix solver (e.g. `LevenbergMarquardt`) with two more stopping
+    rules, checked at every accepted point:
+
+    - *Gauss–Newton step small*: the full Gauss–Newton step from the accepted point is shorter
+      than `step_se_tol` standard errors (`_gauss_newton_step_in_se`): what is left to gain is far
+      inside the estimate's own uncertainty;
+    - *cost stalled*: the last `window` steps lowered ½χ² by less than `cost_rtol` (`_stalled`),
+      a safeguard when the Jacobian is poor;
+    - *predicted gain small*: the full Gauss–Newton step from the accepted point predicts a decrease
+      of ½χ² under `gain_rtol` of its value (MINPACK's predicted-reduction test; 0 switches it
+      off): the stall rule's threshold, without waiting `window` steps to see it, and below what
+      the adaptive solve resolves (½χ² jitters by ~1e-5 relative at rtol 1e-5). On the HD2 joint
+      fit every step after that point was rejected (steps 5–9 of 9, ½χ² unchanged to 8 digits,
+      2026-11-27).
+
+    Everything else is the inner solver's, with one residual-and-Jacobian evaluation per LM step:
+    in `optx.least_squares` it is one compiled optimistix loop, and `fit_parameters` takes the same
+    steps from Python (`_stepped_least_squares`). `state.reason` says which rule stopped it
+    (`STOP_REASONS`); `state.inner.f_info` holds the residual and Jacobian at the returned point."""
+
+    inner: optx.AbstractLeastSquaresSolver
+    step_se_tol: float = 0.1
+    cost_rtol: float = 1e-5
+    gain_rtol: float = 1e-5
+    window: int = STALL_WINDOW
+    callback: Callable | None = eqx.field(default=None, static=True)
+    """Host function `(step, ½χ², Gauss–Newton step in standard errors)` called after every LM
+    step through `jax.debug.callback`; None compiles nothing in. A program that holds a host
+    callback is never written to JAX's persistent compilation cache: `fit_parameters` leaves it
+    None and reports its steps from Python (`_stepped_least_squares`), reading the same figures
+    from the state (`cost`, `step_se`)."""
+
+    # equinox lets a property implement an `AbstractVar`; pyright takes them for dataclass fields
+    @property
+    def rtol(self):  # pyright: ignore[reportIncompatibleVariableOverride]
+        return self.inner.rtol
+
+    @property
+    def atol(self):  # pyright: ignore[reportIncompatibleVariableOverride]
+        return self.inner.atol
+
+    @property
+    def norm(self):  # pyright: ignore[reportIncompatibleMethodOverride]
+        return self.inner.norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+        return _StopState(inner, jnp.array(jnp.inf), jnp.array(0), jnp.array(jnp.inf), jnp.array(jnp.inf))
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.inner.step(fn, y, args, options, state.inner, tags)
+        r = inner.f_info.residual
+        cost = 0.5 * jnp.sum(r**2)
+        m, predicted = _gauss_newton_step_in_se(r, lx.materialise(inner.f_info.jac).as_matrix())
+        check = (inner.num_steps % self.window) == 0
+        stalled = check & _stalled(state.checkpoint, cost, self.cost_rtol)
+        checkpoint = jnp.where(check, cost, state.checkpoint)
+        small_gain = predicted < self.gain_rtol * cost
+        reason = jnp.where(m < self.step_se_tol, 1, jnp.where(stalled, 2, jnp.where(small_gain, 3, 0)))
+        if self.callback is not None:
+            jax.debug.callback(self.callback, inner.num_steps, cost, m)
+        return y, _StopState(inner, checkpoint, reason, cost, m), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        terminate, result = self.inner.terminate(fn, y, args, options, state.inner, tags)
+        return terminate | (state.reason > 0), result
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state.inner, tags, result)
+
+
+def _stop_reason(result, reason) -> np.ndarray:
+    """Per fit: one of `STOP_REASONS` or "max_steps"."""
+    ok = np.asarray(result == optx.RESULTS.successful)
+    return np.where(ok, np.asarray(STOP_REASONS)[np.asarray(reason)], "max_steps")
+
+
+def _state_residual_and_jacobian(state):
+    """Residual and (materialised) Jacobian at the accepted point of a `CostStop` state (already
+    computed there)."""
+    info = state.inner.f_info
+    return info.residual, lx.materialise(info.jac).as_matrix()
+
+
+def _final_residual_and_jacobian(sol):
+    """Residual and (materialised) Jacobian at `sol.value`, from the LM state."""
+    return _state_residual_and_jacobian(sol.state)
+
+
+def _lm_objective(residuals):
+    """`residuals(theta, args)` as LM's objective, with its linearisation materialised once per
+    iterate.
+
+    optimistix LM linearises the residuals at every iterate and applies the linearisation several
+    times (materialising J, predicted reduction); through the solver's while loops each
+    application re-runs the ODE solve. Materialising J once (forward mode) and answering every JVP
+    with J @ t is the same arithmetic up to round-off, with 39 % less time per LM step and 25 %
+    less compilation (measured, benchmarks/RESULTS.md)."""
+
+    @jax.custom_jvp
+    def objective(theta, args):
+        return residuals(theta, args)
+
+    @objective.defjvp
+    def _jvp(primals, tangents):
+        (theta, args), (dtheta, _) = primals, tangents  # the data are never differentiated
+        J, r = jax.jacfwd(lambda t: (lambda r: (r, r))(residuals(t, args)), has_aux=True)(theta)
+        return r, J @ dtheta
+
+    return objective
+
+
+def fit_parameters(
+    p0: Parameters,
+    drive: Drive,
+    batch: Experiment,
+    *,
+    free=DEFAULT_FREE,
+    simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8),
+    solver=optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6),
+    max_steps: int = 40,
+    step_se_tol: float = 0.1,
+    cost_rtol: float = 1e-5,
+    sigma=None,
+    se_block: float = 0.1,
+    throw: bool = True,
+) -> TrajectoryFit:
+    """Fit `free` parameters on the trajectory error of all experiments of `batch` at once.
+
+    **Main arguments:**
+
+    - `p0`: start values (for example the paper's regressions, `identify_paper`).
+    - `drive`: drive constants.
+    - `batch`: stacked experiments (`stack_experiments`), constrained and free mixed.
+    - `free`: names of the parameters to fit; the others stay at `p0`.
+
+    **Other arguments:** `simulator` (ODE numerics), `solver` (optimistix LM), `max_steps` (LM
+    steps in all), `step_se_tol` (also stop when the Gauss–Newton step left is shorter than this
+    many standard errors), `cost_rtol` (also stop when `STALL_WINDOW` steps lower ½χ² by less than
+    this fraction), see `CostStop`; `sigma` (channel noise levels; `fit_noise_levels` at `p0`, sensor plus process noise, when
+    None); `se_block` (s: the standard errors allow a misfit correlated over this long, see
+    `block_covariance`; 0.1 s, the scale of the records' motion: on clean independent-bench data
+    0.05–0.25 s blocks gave standard errors within 2× of each other, single-sample blocks 4–6× smaller; with
+    fewer than two blocks per fitted parameter the white-noise errors are reported); `throw` (as in
+    optimistix: raise a `RuntimeError` when LM stops without converging;
+    with `throw=False` the result is returned and `result` / `converged` say how it ended).
+
+    **Returns:** a `TrajectoryFit`.
+    """
+    pmap = make_parameter_map(p0, free)
+    sigma = fit_noise_levels(p0, drive, batch, simulator=simulator) if sigma is None else jnp.asarray(sigma)
+    theta0 = pmap.to_vector(p0)
+    # several devices: split the experiment axis over all of them (masked dummies pad the batch)
+    mesh = experiment_mesh() if jax.device_count() > 1 else None
+    n_exp = int(batch.time.shape[0])  # the real experiments (the progress line counts no dummies)
+    if mesh is not None:
+        batch, _ = shard_experiments(batch, mesh)
+    with lm_progress(f"LM fit ({len(free)} parameters, {n_exp} experiments)", max_steps) as callback:
+        run = _cached(_joint_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh)
+        theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (pmap, p0, drive, batch, sigma), callback))
+    stop = str(_stop_reason(result, reason))
+    if throw and stop == "max_steps":
+        raise RuntimeError(
+            f"`fit_parameters`: Levenberg–Marquardt did not converge ({optx.RESULTS[result]}, max_steps={max_steps}, "
+            f"{int(steps)} steps). Raise `max_steps`, or pass `throw=False` to get the last iterate with "
+            "`converged=False`.")
+    theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
+    n_obs = int(np.sum(r != 0.0))
+    chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))
+    cov_white = white_covariance(J, chi2)
+    blocks = np.broadcast_to(time_blocks(np.asarray(batch.time), se_block)[:, None, :], (batch.time.shape[0], 3, batch.time.shape[1]))
+    cov_robust, how = robust_covariance(J, r, blocks, lambda: cov_white)  # residual rows: experiment, channel, sample
+    method = "block_sandwich" if how == "block_sandwich" else "white"
+    # delta method: d p / d theta
+    dp = np.asarray(jax.jacfwd(lambda t: jnp.stack([getattr(pmap.to_model(t, p0), k) for k in free]))(jnp.asarray(theta)))
+    cov = dp @ cov_robust @ dp.T
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    se_white = np.sqrt(np.clip(np.diag(dp @ cov_white @ dp.T), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    params = pmap.to_model(jnp.asarray(theta), p0)
+    return TrajectoryFit(
+        params=params,
+        free=tuple(free),
+        std_error={k: float(v) for k, v in zip(free, se)},
+        std_error_white={k: float(v) for k, v in zip(free, se_white)},
+        std_error_method=method,
+        se_block=float(se_block),
+        correlation=corr,
+        chi2_reduced=chi2,
+        converged=stop != "max_steps",
+        steps=int(steps),
+        stop_reason=stop,
+        sigma=np.asarray(sigma),
+        jacobian_singular_values=np.linalg.svd(J, compute_uv=False),
+        result=result,
+    )
+
+
+@dataclasses.dataclass
+class PerExperimentFit:
+    """Result of `fit_per_experiment`: one trajectory-error fit per experiment.
+
+    **Attributes:**
+
+    - `free`: names of the parameters (columns of `values` and `mask`).
+    - `mask`: (experiments, parameters) bool; True where the parameter was fitted on that experiment.
+    - `values`: (experiments, parameters) estimates (SI), NaN where not fitted or not converged.
+    - `converged`: per experiment, LM stopped by one of its rules (`CostStop`) within `max_steps`.
+    - `steps`: LM iterations per experiment.
+    - `chi2_reduced`: per experiment, residual sum of squares / (n − p).
+    """
+
+    free: tuple[str, ...]
+    mask: np.ndarray
+    values: np.ndarray
+    converged: np.ndarray
+    steps: np.ndarray
+    chi2_reduced: np.ndarray
+
+    def per_experiment(self, name: str) -> list[float]:
+        """Estimates of `name` per experiment (NaN where it was not fitted or LM did not converge)."""
+        return [float(v) for v in self.values[:, self.free.index(name)]]
+
+    def consistency(self, name: str) -> float:
+        """The paper's measure, std (ddof 1) / |mean| over the finite per-experiment estimates."""
+        return _consistency(self.values[:, self.free.index(name)])
+
+
+def fit_per_experiment(
+    p0: Parameters,
+    drive: Drive,
+    batch: Experiment,
+    mask,
+    *,
+    free=DEFAULT_FREE,
+    simulator: Simulator = Simulator(rtol=1e-5, atol=1e-7),
+    solver: optx.AbstractLeastSquaresSolver = MarquardtLM(rtol=1e-6, atol=1e-6),
+    max_steps: int = 12,
+    step_se_tol: float = 0.1,
+    cost_rtol: float = 1e-5,
+    sigma=None,
+) -> PerExperimentFit:
+    """One trajectory-error LM fit per experiment, all by one compiled program (`for_each_experiment`:
+    `lax.map` on the CPU, `vmap` on accelerators). On the CPU it is called on chunks of the batch
+    (`_per_experiment_chunk`) so that progress is reported between them; the fits are the same to
+    the last bit as in one call (a test).
+
+    Experiment `e` fits the parameters `free[k]` with `mask[e, k]` True and keeps the others at
+    `p0` (for example the joint fit's estimate), so each experiment estimates only what it can
+    determine (locked: compliance; fast free motion: inertia, viscous and Coulomb; slow free
+    motion: Stribeck). The spread of the estimates is the trajectory method's consistency measure.
+    Each experiment carries only as many unknowns as the largest row of `mask` (forward-mode
+    tangents cost in proportion), and stops on its own by `CostStop`'s rules.
+
+    With several devices (`hdjax.use_host_devices`: one per CPU core) each device fits its share
+    of the experiments (`jax.shard_map`). That needs a solver whose state holds no lineax operator
+    built inside the device map: the default `hdjax._fit.lm.MarquardtLM` (Levenberg–Marquardt on the
+    normal equations with Marquardt scaling) qualifies; `optimistix.LevenbergMarquardt` fails
+    there in lineax's structure check and so runs on one device. Measured on the shipped HD2 data
+    (50 experiments from the paper estimates, 2-core machine): `optimistix.LevenbergMarquardt` on
+    one device 43.0 s, `MarquardtLM` on one 46.6 s, on two 25.7 s, the same 48/50 converged. In
+    `hdjax fit configs/hd2.yaml` (from the joint estimate) the stage took 40.8 s before, 23.3 s
+    now, 50/50 converged both ways; the well-determined estimates (K1 … Tsn) agree within 1e-3
+    relative. One fit differs: on one slow free-motion record `MarquardtLM` rejects its first five
+    steps, the cost-stall rule stops it at its start (χ²_red 86.4), where optimistix's LM had moved
+    its Stribeck amplitude to +0.31 N·m (χ²_red 51.4, against −0.01 … −0.07 N·m on every other
+    record).
+
+    **Arguments:** as `fit_parameters`, plus `mask`: (experiments, len(free)) bool.
+
+    **Returns:** a `PerExperimentFit`.
+    """
+    pmap = make_parameter_map(p0, free)
+    sigma = fit_noise_levels(p0, drive, batch, simulator=simulator) if sigma is None else jnp.asarray(sigma)
+    theta0 = pmap.to_vector(p0)
+    mask = np.asarray(mask, dtype=bool)
+    n_exp = int(batch.time.shape[0])
+    if mask.shape != (n_exp, len(pmap.fields)):
+        raise ValueError(f"`fit_per_experiment`: mask has shape {mask.shape}, expected ({n_exp}, {len(pmap.fields)}).")
+    # slots: experiment e fits z[e, s] for parameter slot_index[e, s] where slot_on[e, s]
+    n_slots = max(1, int(mask.sum(axis=1).max()))
+    slot_index = np.zeros((n_exp, n_slots), dtype=int)
+    slot_on = np.zeros((n_exp, n_slots))
+    for e in range(n_exp):
+        ks = np.flatnonzero(mask[e])
+        slot_index[e, : len(ks)] = ks
+        slot_on[e, : len(ks)] = 1.0
+
+    active = mask.any(axis=1)
+    # several devices: each fits its share of the experiments (masked dummies pad the batch; their
+    # slots are off, so they hold still and are dropped below)
+    mesh = experiment_mesh() if jax.device_count() > 1 and isinstance(solver, MarquardtLM) else None
+    n_devices = 1 if mesh is None else mesh.size
+    chunk = _per_experiment_chunk(n_exp, n_devices, experiment_batching(fixed_cost=is_fixed_cost(simulator)))
+    run = _cached(_per_experiment_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh)
+    order = _interleaved(n_exp, n_devices, chunk)
+    parts = []
+    with count_progress("per-experiment LM fits", n_exp, unit="experiments") as done:
+        for lo in range(0, n_exp, chunk):
+            take = order[lo:lo + chunk]
+            part, n_real = pad_experiments(jax.tree.map(lambda x: x[take], batch), chunk)
+            if mesh is not None:
+                part, _ = shard_experiments(part, mesh)
+            pad = chunk - n_real  # dummies: slots off
+            idx = jnp.asarray(np.concatenate([slot_index[take], np.zeros((pad, n_slots), dtype=int)]))
+            on = jnp.asarray(np.concatenate([slot_on[take], np.zeros((pad, n_slots))]))
+            z, result, reason, steps, r = jax.block_until_ready(
+                run(jnp.zeros((chunk, n_slots)), (pmap, theta0, p0, drive, part, sigma, idx, on)))
+            parts.append([np.asarray(x)[:n_real] for x in (z, steps, r)] + [_stop_reason(result, reason)[:n_real]])
+            if done is not None:
+                for _ in range(n_real):
+                    done()
+    back = np.argsort(order)  # the fits in the batch's order
+    z_final, steps, r, stop = (np.concatenate(xs)[back] for xs in zip(*parts))
+    idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
+    ok = (stop != "max_steps") & active
+    rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
+    values = np.full(mask.shape, np.nan)
+    for e in np.flatnonzero(ok):
+        p = pmap.to_model(_full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
+        for k, name in enumerate(pmap.fields):
+            if mask[e, k]:
+                values[e, k] = float(getattr(p, name))
+    dof = np.maximum(n_obs - mask.sum(axis=1), 1)
+    return PerExperimentFit(
+        free=pmap.fields,
+        mask=mask,
+        values=values,
+        converged=ok,
+        steps=steps,
+        chi2_reduced=rss / dof,
+    )
+
+
+# --- compiled fit programs, built once per problem structure -------------------------------------
+#
+# A fit program is one `eqx.filter_jit` function. Built inside `fit_parameters` it was a new Python
+# function at every call, so every call traced and compiled it again (about 20 s on this 2-core CPU
+# for the diagnosis's base fit, paid once per dataset). Built here, once per (free parameters,
+# numerics, LM options), with every value (parameter map, start, data, noise levels) an argument,
+# a second fit of the same shapes reuses the compiled program. The programs hold no host callback
+# (progress is reported from Python between calls), so JAX's persistent compilation cache keeps
+# them too (`hdjax.use_compilation_cache`).
+
+PER_EXPERIMENT_REPORTS = 8
+"""About how many progress reports `fit_per_experiment` makes (one per chunk of its batch)."""
+
+
+def _interleaved(n_exp: int, n_devices: int, chunk: int) -> np.ndarray:
+    """The order in which `fit_per_experiment` takes the experiments into its chunks of `chunk`:
+    within each run of `chunk` neighbouring experiments, device d's share is every
+    `n_devices`-th one from the d-th. A campaign lists its locked tests, then its free ones, whose
+    fits cost several times more, so the devices' shares of a chunk cost about the same and
+    neither waits long for the other at the chunk's end."""
+    order = []
+    for lo in range(0, n_exp, chunk):
+        block = range(lo, min(lo + chunk, n_exp))
+        order += [e for d in range(n_devices) for e in block[d::n_devices]]
+    return np.asarray(order, dtype=int)
+
+
+def _per_experiment_chunk(n_exp: int, n_devices: int, batching: str) -> int:
+    """Experiments per call of the per-experiment fit program: the whole batch when a device runs
+    its experiments in lock-step (`vmap`), else a multiple of the devices that splits the batch
+    into about `PER_EXPERIMENT_REPORTS` calls. Each call is the same compiled program (the last
+    chunk is padded with dummies); between calls the progress bar advances. On the CPU a device
+    fits its experiments one after the other (`lax.map`), so a chunk costs the sum of its fits:
+    what the chunks add is that both devices wait for the slower one at the end of each chunk."""
+    per_device = max(1, -(-n_exp // n_devices))
+    if batching == "vmap":
+        return per_device * n_devices
+    k = -(-per_device // PER_EXPERIMENT_REPORTS)
+    return k * n_devices
+
+
+def _cached(build, *key):
+    """`build(*key)`, memoised on `key` (numerics and options); built afresh when a key is not
+    hashable (an option holding an array)."""
+    try:
+        hash(key)
+    except TypeError:
+        return build.__wrapped__(*key)
+    return build(*key)
+
+
+def _strong(tree):
+    """Every array leaf without JAX's weak type, so the state a step returns has the type of the
+    state it was given (else the step program is traced and compiled a second time)."""
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype=x.dtype), tree)
+
+
+def _stepped_least_squares(fn, solver: optx.AbstractLeastSquaresSolver, *, max_steps: int, finish, mesh=None):
+    """`optx.least_squares(fn, solver, y0, args, max_steps=max_steps, throw=False)` as compiled
+    programs stepped from Python, for a `CostStop` solver: `run(y0, args, on_step=None)` →
+    `finish(y, state, result, num_steps, args)`.
+
+    optimistix runs `solver.init`, then `solver.step` in a `while_loop` until `solver.terminate`
+    says stop or `max_steps` steps are done. Here the start (init and the first termination test)
+    is one compiled program and one step with its termination test is another, called in a Python
+    loop, and `finish` (with optimistix's own `max_steps` result) a third. The arithmetic is
+    optimistix's own, step for step: the iterates, the stop rule and the result code are the same
+    to the last bit (`tests/test_fit.py`). What changes is where the progress report is made:
+    `on_step(step, ½χ², Gauss–Newton step in standard errors)` is called from Python after each
+    step, with the figures `CostStop` keeps in its state, where a `jax.debug.callback` inside the
+    loop made it before. A compiled program that holds a host callback is never written to JAX's
+    persistent compilation cache, so the LM programs (10–15 s of compilation each on the 2-core
+    machine) were compiled on every run of a command; now they are read back.
+
+    The state's non-array part (its structure, the linearisation's functions) is the start
+    program's, passed to the step program as a static argument, as optimistix's loop combines
+    its start state's static part with each step's arrays. The state the programs return has one
+    type and, with a device `mesh`, one placement (replicated: the start's state would otherwise
+    sit on one device and the steps' be spread over the mesh), so the step program is compiled
+    once."""
+    tags, options = frozenset(), {}
+
+    def placed(tree):
+        tree = _strong(tree)
+        if mesh is None:
+            return tree
+        everywhere = replicated(mesh)
+        return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, everywhere), tree)
+
+    def fn_aux(y, args):
+        return fn(y, args), None
+
+    def terminate(y, state, args):
+        done, result = solver.terminate(fn_aux, y, args, options, state, tags)
+        return done, optx.RESULTS.where(jnp.all(jnp.isfinite(y)), result, optx.RESULTS.nonfinite)
+
+    @eqx.filter_jit
+    def start(y0, args):
+        f_struct = jax.eval_shape(fn, y0, args)
+        state = solver.init(fn_aux, y0, args, options, f_struct, None, tags)
+        dynamic, static = eqx.partition(state, eqx.is_array)
+        return placed(dynamic), static, *placed(terminate(y0, state, args))
+
+    @eqx.filter_jit
+    def step(y, dynamic, static, args):
+        y_new, state, _ = solver.step(fn_aux, y, args, options, eqx.combine(dynamic, static), tags)
+        done, result = terminate(y, state, args)  # optimistix tests the new state at the old iterate
+        return placed((y_new, eqx.partition(state, eqx.is_array)[0], done, result))
+
+    @eqx.filter_jit
+    def end(y, dynamic, static, done, result, num_steps, args):
+        result = optx.RESULTS.where((result == optx.RESULTS.successful) & jnp.invert(done),
+                                    optx.RESULTS.nonlinear_max_steps_reached, result)
+        return finish(y, eqx.combine(dynamic, static), result, num_steps, args)
+
+    def run(y0, args, on_step=None):
+        y = _strong(jnp.asarray(y0, dtype=float))
+        if mesh is not None:
+            y = jax.device_put(y, replicated(mesh))
+        dynamic, static, done, result = start(y, args)
+        num_steps = 0
+        while num_steps < max_steps and not bool(done) and result == optx.RESULTS.successful:
+            y, dynamic, done, result = step(y, dynamic, static, args)
+            num_steps += 1
+            if on_step is not None:
+                on_step(int(dynamic.inner.num_steps), float(dynamic.cost), float(dynamic.step_se))
+        return end(y, dynamic, static, done, result, jnp.asarray(num_steps), args)
+
+    run.start, run.step, run.end = start, step, end  # pyright: ignore[reportFunctionMemberAccess]  the programs, for tests
+    return run
+
+
+@functools.lru_cache(maxsize=32)
+def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh):
+    """The compiled joint fit: `run(theta0, (pmap, p0, drive, batch, sigma), on_step=None)` → (θ,
+    result, stop rule, steps, residual, Jacobian at θ); LM stepped from Python
+    (`_stepped_least_squares`), so its programs hold no host callback and JAX's persistent cache
+    keeps them."""
+
+    def residuals(theta, args):
+        pmap, p0_, drive_, batch_, sigma_ = args
+        p = pmap.to_model(theta, p0_)
+
+        def per_experiment(shared, b):
+            p_, d_, s_ = shared
+            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator), b,
+                                       fixed_cost=is_fixed_cost(simulator))
+
+        r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
+        return r.reshape(-1)
+
+    def finish(theta, state, result, num_steps, args):
+        r, J = _state_residual_and_jacobian(state)
+        if mesh is not None:  # every process can read the result (multi-host)
+            r, J = (jax.lax.with_sharding_constraint(x, replicated(mesh)) for x in (r, J))
+        return theta, result, state.reason, num_steps, r, J
+
+    # data enter as arguments (never as closed-over constants, which XLA would try to constant-fold)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)  # pyright: ignore[reportCallIssue]  rtol/atol/norm are properties
+    return _stepped_least_squares(_lm_objective(residuals), lm, max_steps=max_steps, finish=finish, mesh=mesh)
+
+
+def _full_theta(z, theta0, idx, on):
+    """θ of one per-experiment fit: θ0 with its slots `idx` (where `on`) moved by z."""
+    return theta0.at[idx].add(on * z)
+
+
+@functools.lru_cache(maxsize=32)
+def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh):
+    """The compiled per-experiment fits: `run(z0, (pmap, θ0, p0, drive, batch, sigma, idx, on))` →
+    per experiment (z, result, stop rule, steps, residual). It holds no host callback, so JAX's
+    persistent cache keeps it; `fit_per_experiment` calls it on chunks of the batch and reports
+    its progress between them (`_per_experiment_chunk`)."""
+
+    def residuals(z, args):
+        pmap, theta0_, p0_, drive_, exp, sigma_, idx, on = args
+        p = pmap.to_model(_full_theta(z, theta0_, idx, on), p0_)
+        return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
+
+    residuals_lm = _lm_objective(residuals)
+    lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)  # pyright: ignore[reportCallIssue]  rtol/atol/norm are properties
+
+    @eqx.filter_jit
+    def run(z, args):
+        pmap, theta0_, p0_, drive_, batch_, sigma_, idx, on = args
+
+        def per_device(shared, b):
+            pmap_, theta0_d, p0_d, drive_d, sigma_d = shared
+
+            def one(z_e, exp, idx_e, on_e):
+                sol = optx.least_squares(residuals_lm, lm, z_e, (pmap_, theta0_d, p0_d, drive_d, exp, sigma_d, idx_e, on_e),
+                                         max_steps=max_steps, throw=False)
+                return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
+
+            return for_each_experiment(one, *b)
+
+        return map_experiments(per_device, mesh)((pmap, theta0_, p0_, drive_, sigma_), (z, batch_, idx, on))
+
+    return run
