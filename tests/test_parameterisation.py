@@ -32,11 +32,11 @@ def test_transforms_and_round_trip():
 
 def test_array_fields_take_one_slot_per_element():
     """Also a dotted path into a sub-Module: the eq. 9 law of a friction-only model."""
-    pm = parameterisation((Entry("law.Tss2", transform="log"), Entry("ripple_sin", 3), Entry("thermal_drift.beta")))
-    assert pm.size == 5 and pm.slot("ripple_sin") == slice(1, 4) and pm.slot("thermal_drift.beta") == 4
+    pm = parameterisation((Entry("law.Tss2", transform="log"), Entry("position_dependent_friction.sin", 3), Entry("thermal_drift.beta")))
+    assert pm.size == 5 and pm.slot("position_dependent_friction.sin") == slice(1, 4) and pm.slot("thermal_drift.beta") == 4
     base = FrictionParameters(Tvp=1.0, Tvn=1.0, Tsp=0.5, Tsn=0.5, Tssp1=0.1, Tssn1=0.1, Tss2=0.05)
     q = pm.to_model(jnp.asarray([np.log(0.2), 0.1, 0.2, 0.3, 0.4]), base)
-    np.testing.assert_allclose(np.asarray(q.ripple_sin), [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(np.asarray(q.position_dependent_friction.sin), [0.1, 0.2, 0.3])
     assert float(q.law.Tss2) == pytest.approx(0.2) and float(q.thermal_drift.beta) == pytest.approx(0.4)
     assert float(q.law.Tvp) == 1.0 and np.isnan(float(q.law.K1))  # the rest as in `base`
     np.testing.assert_allclose(np.asarray(pm.to_vector(q)), [np.log(0.2), 0.1, 0.2, 0.3, 0.4], rtol=1e-14)

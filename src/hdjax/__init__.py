@@ -77,6 +77,7 @@ from ._model.effects import (
     LowSpeedFriction as LowSpeedFriction,
     NonlinearStiffness as NonlinearStiffness,
     PositionDependentFriction as PositionDependentFriction,
+    PositionDependentTorque as PositionDependentTorque,
     PreslidingFriction as PreslidingFriction,
     RateIndependentHysteresis as RateIndependentHysteresis,
     SensorBandwidth as SensorBandwidth,

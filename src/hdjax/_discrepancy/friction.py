@@ -37,7 +37,8 @@ from .._fit.friction import (
     rms_stats,
     vector_to_params,
 )
-from .._model.friction_only import HARMONIC_SLOTS, STATE_SCALE, FrictionParameters, FrictionStructure, presliding_state
+from .._model.effects import PRESLIDING_DISTANCE, STATE_SCALE
+from .._model.friction_only import HARMONIC_SLOTS, FrictionParameters, FrictionStructure, presliding_state
 from .._model.paper import Smoothing, friction_basis, friction_parts
 from .._model.smooth import smooth_step
 from .significance import FRICTION_RULES, Significance, forward_selection
@@ -193,8 +194,8 @@ def _add(problem: FrictionProblem, fold: _Fold, name: str, w: np.ndarray, pred: 
             st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=o, presliding=st.presliding,
                                    thermal=st.thermal)
     elif name == "presliding_friction":
-        x[SLOT["presliding_distance"]] = np.log(_start_delta(problem, fold, w))
-        free[SLOT["presliding_distance"]] = True
+        x[SLOT["presliding_friction.presliding_scale"]] = np.log(_start_delta(problem, fold, w) / PRESLIDING_DISTANCE)
+        free[SLOT["presliding_friction.presliding_scale"]] = True
         st = FrictionStructure(ripple_orders=st.ripple_orders, torque_orders=st.torque_orders, presliding=1.0,
                                thermal=st.thermal)
     elif name == "thermal_drift":

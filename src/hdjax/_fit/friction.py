@@ -13,7 +13,8 @@ per sample saying which samples it may see. Rows are `vmap`ped:
 Each row has `E + 1` entries, so all calls share one shape and one compilation.
 
 The vector is normalised (viscous by RMS torque / RMS velocity, torques by RMS torque, `Tss2`,
-`presliding_distance` and `thermal_drift.tau` through their logarithm), residuals are divided by the RMS
+`thermal_drift.tau` through their logarithm, the presliding distance by its term's own log scale
+`presliding_friction.presliding_scale`), residuals are divided by the RMS
 torque. Directions without data (fewer than `MIN_DIRECTION_SAMPLES` samples beyond
 3 × `Smoothing.velocity_scale`, or under 2 % of the moving samples) cannot be identified: their three
 parameters are tied to the other direction's (a symmetric-friction assumption the report states).
@@ -44,7 +45,7 @@ import optimistix as optx
 import scipy.signal
 
 from .._data.experiment import FrictionExperiment, stack_experiments
-from .._model.effects import THERMAL_TAU
+from .._model.effects import PRESLIDING_DISTANCE, THERMAL_TAU, PositionDependentFriction
 from .._model.friction_only import (
     FRICTION_NAMES,
     HARMONIC_SLOTS,
@@ -59,22 +60,22 @@ from .parameterisation import Entry, Parameterisation, parameterisation, slots, 
 
 M = HARMONIC_SLOTS
 #: The fit's vector: eq. 9 (torques scaled, Tss2 on a log scale), the harmonic slots of the two
-#: position extensions (scaled), the presliding distance and thermal τ (log), thermal β (scaled).
+#: position terms (scaled), the presliding term's log distance scale, thermal β (scaled) and τ (log).
 FRICTION_ENTRIES = (
     Entry("law.Tvp"), Entry("law.Tvn"), Entry("law.Tsp"), Entry("law.Tsn"), Entry("law.Tssp1"), Entry("law.Tssn1"),
     Entry("law.Tss2", transform="log"),
-    Entry("ripple_sin", M), Entry("ripple_cos", M), Entry("torque_sin", M), Entry("torque_cos", M),
-    Entry("presliding_distance", transform="log"), Entry("thermal_drift.beta"), Entry("thermal_drift.tau", transform="log"),
+    Entry("position_dependent_friction.sin", M), Entry("position_dependent_friction.cos", M),
+    Entry("position_dependent_torque.sin", M), Entry("position_dependent_torque.cos", M),
+    Entry("presliding_friction.presliding_scale"), Entry("thermal_drift.beta"), Entry("thermal_drift.tau", transform="log"),
 )  # fmt: skip
-_PATH_SLOT = slots(FRICTION_ENTRIES)  # by field path ("law.Tvp", "ripple_sin", ...)
+_PATH_SLOT = slots(FRICTION_ENTRIES)  # by field path ("law.Tvp", "position_dependent_friction.sin", ...)
 #: Vector index / slice of each field, keyed by its name (the eq. 9 fields without their `law.` path).
 SLOT = {k.removeprefix("law."): v for k, v in _PATH_SLOT.items()}
 IDX = {k: v for k, v in SLOT.items() if isinstance(v, int)}  # the scalar fields' indices
 N_PARAMS = vector_size(FRICTION_ENTRIES)
 LOG_INDICES = [_PATH_SLOT[e.field] for e in FRICTION_ENTRIES if e.transform == "log"]
-#: The (sin, cos) coefficient fields of each periodic extension.
-HARMONIC_FIELDS = {"position_dependent_friction": ("ripple_sin", "ripple_cos"),
-                   "position_dependent_torque": ("torque_sin", "torque_cos")}
+#: The (sin, cos) coefficient paths of each periodic extension.
+HARMONIC_FIELDS = {name: (f"{name}.sin", f"{name}.cos") for name in ("position_dependent_friction", "position_dependent_torque")}
 EQ9_SLOTS = [IDX[k] for k in FRICTION_NAMES]  # the eq. 9 part of the vector, in `FRICTION_NAMES` order
 MIN_DIRECTION_SAMPLES = 50
 DENSE_BELOW = 10.0  # velocity scales below which every sample enters the fit (`FrictionProblem.index`)
@@ -223,9 +224,10 @@ class FrictionProblem:
         scale = np.ones(N_PARAMS)
         for k in ("Tvp", "Tvn"):
             scale[SLOT[k]] = self.sigma / vs
-        for k in ("Tsp", "Tsn", "Tssp1", "Tssn1", "torque_sin", "torque_cos"):
+        for k in ("Tsp", "Tsn", "Tssp1", "Tssn1", *HARMONIC_FIELDS["position_dependent_torque"]):
             scale[SLOT[k]] = self.sigma
-        scale[SLOT["ripple_sin"]], scale[SLOT["ripple_cos"]] = 0.1, 0.1
+        for k in HARMONIC_FIELDS["position_dependent_friction"]:
+            scale[SLOT[k]] = PositionDependentFriction.amplitude_scale({})  # 0.1, as in the plant's fits
         self.pmap = parameterisation(FRICTION_ENTRIES, scale)  # log slots keep scale 1: value = exp(x)
         self.scale = self.pmap.scale
         self.E, self.N = self.mask.shape
@@ -372,7 +374,8 @@ class FrictionProblem:
         eq9 = EQ9_SLOTS
         x[eq9] = x_best  # six torques, then ln Tss2 (`FRICTION_NAMES` order)
         x[eq9[:6]] /= np.asarray(self.scale)[eq9[:6]]
-        x[SLOT["presliding_distance"]], x[SLOT["thermal_drift.tau"]] = np.log(1e-3), np.log(THERMAL_TAU)
+        x[SLOT["presliding_friction.presliding_scale"]] = np.log(1e-3 / PRESLIDING_DISTANCE)  # δ = 1 mrad
+        x[SLOT["thermal_drift.tau"]] = np.log(THERMAL_TAU)
         return x
 
     # ---------------------------------------------------------------- fitting

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .smooth import smooth_sign
+from .smooth import smooth_sign, smooth_step
 
 MAX_ORDER = 8
 #: rad, wave-generator side: the presliding distance δ of `presliding_friction`'s Dahl state at
@@ -41,6 +41,7 @@ MAX_ORDER = 8
 #: radius of 10–20 mm is 1e-4–1e-3 rad; fitted on clean independent-bench data δ came out
 #: 1.5e-4–2.5e-4 rad (stick–slip and LuGre laws), from a start of 1e-3
 PRESLIDING_DISTANCE = 2e-4
+STATE_SCALE = 1e-3  # smoothing scale of u(s) on the dimensionless presliding state s
 THERMAL_TAU = 600.0  # s: default time constant of `thermal_drift` (the lubricant's warm-up), shared by every path
 #: rad/s: the velocity scale ε below which `viscous_friction_law`'s power law |ω|^κ turns into a
 #: linear law of slope $T_v(\epsilon/\omega_r)^{\kappa-1}$, so that its derivative stays finite at
@@ -189,9 +190,11 @@ class AbstractPeriodicTerm(AbstractTerm):
         s = cls.amplitude_scale(ctx)
         return (Fitted("sin", s), Fitted("cos", s))
 
-    def value(self, theta_m):
-        """The term at wave-generator angle `theta_m` (rad), in `unit`."""
-        return harmonic_sum(theta_m, _ORDERS, self.sin, self.cos)
+    def value(self, theta_m, orders=None):
+        """The term at wave-generator angle `theta_m` (rad), in `unit`. `orders`: the order of each
+        coefficient slot, default 1..`MAX_ORDER`; the friction-only fits hold `HARMONIC_SLOTS` slots
+        whose orders (cycles per turn of the joint position, 0 = off) are chosen from the data."""
+        return harmonic_sum(theta_m, _ORDERS if orders is None else orders, self.sin, self.cos)
 
     def rate(self, theta_m, omega_m):
         """Time derivative of `value` along θm' = `omega_m` (rad/s)."""
@@ -282,6 +285,25 @@ class PositionDependentFriction(AbstractPeriodicTerm):
     @classmethod
     def amplitude_scale(cls, ctx):
         return 0.1
+
+
+class PositionDependentTorque(AbstractPeriodicTerm):
+    """`position_dependent_torque` of friction-only data: a direction-independent torque
+    $\\sum_k b_k\\sin(k\\theta + \\psi_k)$ (N·m) of the recorded joint position. Not friction: on joint
+    data it is what a rigid-body (gravity) model error left upstream, or a torque-sensor ripple, looks
+    like. The plant has no such term (its torque-sensor ripple is `TorqueSensorRipple`), so it is not
+    in `TERMS`; only the friction-only fits hold it."""
+
+    sin: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    cos: Float[Array, " order"] = eqx.field(default_factory=_zeros, converter=_as_float)
+    name: ClassVar[str] = "position_dependent_torque"
+    unit: ClassVar[str] = "N·m"
+    letter: ClassVar[str] = "b"
+    units: ClassVar[dict[str, str]] = {"sin": "N·m", "cos": "N·m"}
+
+    @classmethod
+    def amplitude_scale(cls, ctx):
+        return ctx["torque_scale"]
 
 
 class NonlinearStiffness(AbstractTerm):
@@ -413,14 +435,24 @@ class PreslidingFriction(AbstractTerm):
     def fitted(cls, ctx):
         return (Fitted("presliding", 1.0), Fitted("presliding_scale", 1.0))
 
+    def distance(self):
+        """The presliding distance δ (rad)."""
+        return PRESLIDING_DISTANCE * jnp.exp(self.presliding_scale)
+
+    def direction(self, sign, step, s):
+        """(sign, step) that eq. 9's Coulomb and Stribeck terms switch on: the smoothed sign(ω) and
+        u(ω) blended with the state s (fraction `presliding`), its step u(s) at `STATE_SCALE`.
+        The friction-only fits use `presliding` = 1: s replaces sign(ω) in full."""
+        w = self.presliding
+        return (1.0 - w) * sign + w * s, (1.0 - w) * step + w * smooth_step(s, STATE_SCALE)
+
     def rate(self, s, velocity, scale):
         r"""$\dot s$ (1/s), the law of the friction-only fits (`hdjax._model.friction_only.dahl_recurrence`).
         sign and |·| are smoothed at `scale` (rad/s, the friction's regularisation scale):
         $\tanh(\omega/v_s)$ and $\omega\tanh(\omega/v_s)$, which is $|\omega|$ beyond a few $v_s$
         and has no kink at rest (a stuck state keeps its value)."""
         sg = smooth_sign(velocity, scale)
-        distance = PRESLIDING_DISTANCE * jnp.exp(self.presliding_scale)
-        return velocity * sg / distance * (sg - s)
+        return velocity * sg / self.distance() * (sg - s)
 
 
 class LowSpeedFriction(AbstractTerm):

@@ -31,6 +31,14 @@ Extensions (each off unless its `FrictionStructure` entry is on):
 
 sign() and u() are the smooth stand-ins of `hdjax._model.smooth` with `Smoothing.velocity_scale`
 (rad/s); the direction switch on the presliding state uses `STATE_SCALE` (dimensionless).
+
+Each extension is the plant's own term Module (`PositionDependentFriction`, `PositionDependentTorque`,
+`PreslidingFriction`, `ThermalDrift`): its parameters, units and law are written once. What differs
+from the plant is how a fit switches them: `FrictionStructure` holds array flags and the harmonic
+slots' orders as data, so that one compiled friction fit serves every candidate of the diagnosis
+(the plant switches terms by the static `Effects.active`), and a periodic term here holds
+`HARMONIC_SLOTS` slots of orders chosen from the data (up to 40 cycles per joint turn) instead of
+the plant's fixed orders 1 … `MAX_ORDER` per wave-generator turn.
 """
 
 import equinox as eqx
@@ -38,7 +46,15 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .effects import THERMAL_TAU, ThermalDrift, harmonic_sum, thermal_factor
+from .effects import (
+    PRESLIDING_DISTANCE,
+    THERMAL_TAU,
+    PositionDependentFriction,
+    PositionDependentTorque,
+    PreslidingFriction,
+    ThermalDrift,
+    thermal_factor,
+)
 from .paper import PARAMETER_UNITS, Parameters, Smoothing, _as_float, friction_parts
 from .smooth import smooth_sign, smooth_step
 
@@ -50,7 +66,6 @@ EXTENSION_NAMES = ("position_dependent_friction", "position_dependent_torque", "
 #: three slots reach orders far above `hdjax._model.effects.MAX_ORDER` = 8, which is the number of
 #: *fixed* orders 1 … 8 (cycles per wave-generator turn) that `Effects` carries for the plant.
 HARMONIC_SLOTS = 3
-STATE_SCALE = 1e-3  # smoothing scale of u(s) on the dimensionless presliding state
 
 
 def _f3(x):
@@ -63,36 +78,38 @@ _NOT_IDENTIFIED = {"alpha": float("nan"), "K1": float("nan"), "Tst": float("nan"
 
 
 class FrictionParameters(eqx.Module):
-    """Eq. 9 plus the extension parameters of a friction-only model; all array leaves.
+    """Eq. 9 plus the extensions of a friction-only model: the plant's own term Modules
+    (`hdjax._model.effects`), so each effect's parameters and law exist once.
 
     - `law`: the paper's `Parameters`; its eq. 9 fields (`FRICTION_NAMES`, SI units) are the
       friction law, the same fields and the same `friction_parts` as the plant's. Friction-only
       data do not determine α, K1, Tst, Jeff: they are NaN.
-    - `ripple_sin`, `ripple_cos` (-): $\\epsilon_k\\cos\\phi_k$, $\\epsilon_k\\sin\\phi_k$ of
-      `position_dependent_friction`, one per harmonic slot.
-    - `torque_sin`, `torque_cos` (N·m): $b_k\\cos\\psi_k$, $b_k\\sin\\psi_k$ of `position_dependent_torque`.
-    - `presliding_distance` (rad): $\\delta$ of `presliding_friction`.
-    - `thermal_drift`: the plant's own `hdjax.ThermalDrift` term ($\\beta$ -, $\\tau$ s), built
-      from the keywords `thermal_beta`, `thermal_tau`.
+    - `position_dependent_friction`: a `PositionDependentFriction` with `HARMONIC_SLOTS` slots,
+      `sin`/`cos` (-) = $\\epsilon_k\\cos\\phi_k$, $\\epsilon_k\\sin\\phi_k$; the slots' orders are in
+      `FrictionStructure.ripple_orders`.
+    - `position_dependent_torque`: a `PositionDependentTorque` (N·m), likewise (`torque_orders`).
+    - `presliding_friction`: a `PreslidingFriction` with `presliding` = 1 (the Dahl state replaces
+      sign(ω) in full) and $\\delta$ = `PRESLIDING_DISTANCE` × e^`presliding_scale` (rad, joint side).
+    - `thermal_drift`: a `ThermalDrift` ($\\beta$ -, $\\tau$ s).
 
-    Built from the eq. 9 values by keyword (`FrictionParameters(Tvp=..., ..., Tss2=...,
-    ripple_sin=...)`); a fit's vector reaches them by the paths `"law.Tvp"` and so on.
+    Built from plain values by keyword (`FrictionParameters(Tvp=..., ..., Tss2=..., ripple_sin=...,
+    presliding_distance=..., thermal_beta=...)`); a fit's vector reaches them by the paths
+    `"law.Tvp"`, `"position_dependent_friction.sin"`, `"presliding_friction.presliding_scale"` and so on.
     """
 
     law: Parameters
-    ripple_sin: Float[Array, " 3"]
-    ripple_cos: Float[Array, " 3"]
-    torque_sin: Float[Array, " 3"]
-    torque_cos: Float[Array, " 3"]
-    presliding_distance: Float[Array, ""]
+    position_dependent_friction: PositionDependentFriction
+    position_dependent_torque: PositionDependentTorque
+    presliding_friction: PreslidingFriction
     thermal_drift: ThermalDrift
 
     def __init__(self, *, Tvp, Tvn, Tsp, Tsn, Tssp1, Tssn1, Tss2, ripple_sin=0.0, ripple_cos=0.0, torque_sin=0.0,
                  torque_cos=0.0, presliding_distance=1e-3, thermal_beta=0.0, thermal_tau=THERMAL_TAU):
         self.law = Parameters(**_NOT_IDENTIFIED, Tvp=Tvp, Tvn=Tvn, Tsp=Tsp, Tsn=Tsn, Tssp1=Tssp1, Tssn1=Tssn1, Tss2=Tss2)
-        self.ripple_sin, self.ripple_cos = _f3(ripple_sin), _f3(ripple_cos)
-        self.torque_sin, self.torque_cos = _f3(torque_sin), _f3(torque_cos)
-        self.presliding_distance = _as_float(presliding_distance)
+        self.position_dependent_friction = PositionDependentFriction(sin=_f3(ripple_sin), cos=_f3(ripple_cos))
+        self.position_dependent_torque = PositionDependentTorque(sin=_f3(torque_sin), cos=_f3(torque_cos))
+        scale = jnp.log(jnp.asarray(presliding_distance, dtype=float) / PRESLIDING_DISTANCE)
+        self.presliding_friction = PreslidingFriction(presliding=1.0, presliding_scale=scale)
         self.thermal_drift = ThermalDrift(beta=thermal_beta, tau=thermal_tau)
 
     def eq9(self) -> dict[str, float]:
@@ -197,8 +214,8 @@ def friction_model_torque(
     sg = smooth_sign(v, sc)
 
     def with_state(_):
-        s = take(presliding_state(v_all, t_all, p.presliding_distance, smoothing))
-        return s, smooth_step(s, STATE_SCALE)
+        s = take(presliding_state(v_all, t_all, p.presliding_friction.distance(), smoothing))
+        return p.presliding_friction.direction(sg, up, s)
 
     def without_state(_):
         return sg, up
@@ -206,8 +223,8 @@ def friction_model_torque(
     s, us = jax.lax.cond(structure.presliding > 0.5, with_state, without_state, None)
     viscous, coulomb, stribeck = friction_parts(p.law, v, smoothing, direction=(s, us))
     viscous = viscous * thermal_factor(structure.thermal * p.thermal_drift.beta, p.thermal_drift.tau, start_time + t)
-    ripple = has_position * harmonic_sum(theta, structure.ripple_orders, p.ripple_sin, p.ripple_cos)
-    additive = has_position * harmonic_sum(theta, structure.torque_orders, p.torque_sin, p.torque_cos)
+    ripple = has_position * p.position_dependent_friction.value(theta, structure.ripple_orders)
+    additive = has_position * p.position_dependent_torque.value(theta, structure.torque_orders)
     return viscous + coulomb * (1.0 + ripple) + stribeck + additive
 
 

@@ -30,7 +30,6 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._data.experiment import Experiment
 from .._model.effects import Effects, stiffness_torque
-from .._model.friction_only import STATE_SCALE
 from .._model.paper import Drive, Parameters, Smoothing, compliance_torque, friction_parts
 from .._model.smooth import smooth_sign, smooth_signed_power, smooth_step
 from .rosenbrock import FirstStep, Rodas3, Ros34PW2
@@ -235,9 +234,8 @@ def _friction_direction(wm, y, effects: Effects, smoothing: Smoothing):
     k = _presliding_index(effects)
     if k is None:
         return None
-    w = effects.presliding_friction.presliding
     sg, up = smooth_sign(wm, smoothing.velocity_scale), smooth_step(wm, smoothing.velocity_scale)
-    return (1.0 - w) * sg + w * y[k], (1.0 - w) * up + w * smooth_step(y[k], STATE_SCALE)
+    return effects.presliding_friction.direction(sg, up, y[k])
 
 
 def _friction(p: Parameters, drive: Drive, wm, theta_m, T, t_session, effects: Effects, smoothing: Smoothing,

@@ -332,7 +332,8 @@ def _finding_params(problem: FrictionProblem, fold: _Fold, effect: str) -> dict:
     p = fold_params(problem, fold)
     if effect in HARMONIC_FIELDS:
         orders = np.asarray(st.ripple_orders if effect == "position_dependent_friction" else st.torque_orders)
-        sin_coef, cos_coef = (np.asarray(getattr(p, k)) for k in HARMONIC_FIELDS[effect])
+        term = getattr(p, effect)
+        sin_coef, cos_coef = np.asarray(term.sin), np.asarray(term.cos)
         key = "epsilon" if effect == "position_dependent_friction" else "b"
         out = {}
         for j in range(HARMONIC_SLOTS):
@@ -342,7 +343,7 @@ def _finding_params(problem: FrictionProblem, fold: _Fold, effect: str) -> dict:
                 out[f"{key}{k}"], out[f"phi{k}"] = a, ph
         return out
     if effect == "presliding_friction":
-        return {"presliding_distance": float(p.presliding_distance)}
+        return {"presliding_distance": float(p.presliding_friction.distance())}
     if effect == "thermal_drift":
         return p.thermal_drift.to_dict()
     return {}
