@@ -99,3 +99,17 @@ def test_an_output_is_replaced_whole_or_not_at_all(tmp_path):
     assert out.read_text() == "old\n"
     atomic_write_text(out, "new\n")
     assert out.read_text() == "new\n" and sorted(p.name for p in tmp_path.iterdir()) == ["fit.json"]
+
+
+def test_a_command_writes_its_json_and_report_together(tmp_path):
+    """`write_results`, the one writer every command's workflow ends with: the JSON document (NaN
+    as null, SPEC §3) and report.md, and one log line with the total time."""
+    from hdjax._workflows.io import write_results
+
+    lines = []
+    write_results(tmp_path, "fit.json", {"value": float("nan"), "timing_s": {"total": 1.25}}, "# report\n",
+                  log=lines.append)
+    assert json.loads((tmp_path / "fit.json").read_text()) == {"value": None, "timing_s": {"total": 1.25}}
+    assert (tmp_path / "report.md").read_text() == "# report\n"
+    assert lines == [f"wrote {tmp_path / 'fit.json'} and {tmp_path / 'report.md'} in 1.2 s"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit.json", "report.md"]

@@ -417,3 +417,35 @@ def test_friction_finding_parameters_carry_units():
         "epsilon3": "-", "phi3": "rad", "b12": "N·m", "phi12": "rad"}  # fmt: skip
     assert _finding_units({"presliding_distance": 1e-3}) == {"presliding_distance": "rad"}
     assert _finding_units({"beta": 0.2, "tau": 600.0}) == {"beta": "-", "tau": "s"}
+
+
+def test_friction_only_extensions_are_the_plants_term_modules():
+    """One Module per effect (issue 20): a friction-only model's extensions are the plant's own
+    term classes, built from the keyword values, and the model's torque is eq. 9 plus exactly
+    what those terms give (the Coulomb ripple through `PositionDependentFriction.value` at the
+    slots' data-chosen orders, the additive torque through `PositionDependentTorque.value`, the
+    presliding state through `PreslidingFriction.distance` and `.direction`)."""
+    from hdjax import PositionDependentFriction, PositionDependentTorque, PreslidingFriction, ThermalDrift
+    from hdjax._model.paper import Smoothing, friction_parts
+
+    p = FrictionParameters(**TRUTH, ripple_sin=[0.1, 0.05, 0.0], ripple_cos=[0.02, -0.03, 0.0],
+                           torque_sin=[0.05, 0.0, 0.0], torque_cos=[0.01, 0.0, 0.0], presliding_distance=0.02)
+    assert type(p.position_dependent_friction) is PositionDependentFriction
+    assert type(p.position_dependent_torque) is PositionDependentTorque
+    assert type(p.presliding_friction) is PreslidingFriction and type(p.thermal_drift) is ThermalDrift
+    assert float(p.presliding_friction.distance()) == pytest.approx(0.02, rel=1e-14)
+    assert float(p.presliding_friction.presliding) == 1.0  # the state replaces sign(ω) in full
+
+    t = np.arange(800) * 0.005
+    v = jnp.asarray(0.4 * np.sin(2 * np.pi * 0.7 * t))
+    theta = jnp.asarray(np.cumsum(np.asarray(v)) * 0.005)
+    orders = jnp.asarray([3.0, 7.0, 0.0])
+    st = FrictionStructure(ripple_orders=orders, torque_orders=[5, 0, 0])
+    T = friction_model_torque(p, st, v, time=jnp.asarray(t), position=theta)
+    viscous, coulomb, stribeck = friction_parts(p.law, v, Smoothing())
+    want = (viscous + coulomb * (1.0 + p.position_dependent_friction.value(theta, orders)) + stribeck
+            + p.position_dependent_torque.value(theta, jnp.asarray([5.0, 0.0, 0.0])))
+    np.testing.assert_allclose(np.asarray(T), np.asarray(want), rtol=1e-14, atol=1e-14)
+    k = 3.0  # slot 0 at order 3: 0.1 sin 3θ + 0.02 cos 3θ
+    np.testing.assert_allclose(np.asarray(p.position_dependent_friction.value(theta, jnp.asarray([k, 0.0, 0.0]))),
+                               0.1 * np.sin(k * np.asarray(theta)) + 0.02 * np.cos(k * np.asarray(theta)), atol=1e-15)

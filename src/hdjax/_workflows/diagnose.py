@@ -13,7 +13,7 @@ from .._model.effects import MODEL_FORM_NAMES
 from .._plant.simulate import Simulator
 from .artifacts import effects_to_dict
 from .config import section_options
-from .io import atomic_write_json, atomic_write_text
+from .io import atomic_write_json, write_results
 from .progress import task
 
 DEFAULTS = {
@@ -141,10 +141,8 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
         "figures": figs,
         "timing_s": {"total": time.time() - t_start, **{k: round(v, 2) for k, v in d.timing.items() if k != "total"}},
     }
-    atomic_write_json(out / "diagnosis.json", result)
     atomic_write_json(out / "extended_model.json", result["extended_model"])
-    atomic_write_text(out / "report.md", _report(result))
-    log(f"wrote {out / 'diagnosis.json'} in {result['timing_s']['total']:.1f} s")
+    write_results(out, "diagnosis.json", result, _report(result), log=log)
     return result
 
 

@@ -17,7 +17,7 @@ from .._plant.rosenbrock import Rodas3
 from .._plant.simulate import PLANT_W_METHOD, Simulator, simulate_batch
 from .._plant.stepper import VelocityImplicit
 from .config import section_options
-from .io import atomic_write_json, atomic_write_text
+from .io import write_results
 
 FRICTION_NAMES = ("Jeff", "Tvp", "Tvn", "Tsp", "Tsn")
 DEFAULTS = {
@@ -162,9 +162,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
         "timing_s": {"total": total, "paper_identification": t_paper, "trajectory_fit": t_traj,
                      "per_experiment_fits": t_per, "simulate_all": t_sim},
     }
-    atomic_write_json(out / "fit.json", result)
-    atomic_write_text(out / "report.md", _report(result, truth))
-    log(f"wrote {out / 'fit.json'} and {out / 'report.md'} in {total:.1f} s")
+    write_results(out, "fit.json", result, _report(result, truth), log=log)
     return result
 
 

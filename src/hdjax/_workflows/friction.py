@@ -25,7 +25,7 @@ from .._fit.friction_low_speed import fit_low_speed, low_speed_reason
 from .._model.effects import FIELD_UNITS
 from .._model.friction_only import FRICTION_NAMES, FRICTION_UNITS, HARMONIC_SLOTS, amplitude_phase
 from .diagnose import with_units
-from .io import atomic_write_json, atomic_write_text
+from .io import write_results
 
 TRAIN_FRACTION = 0.7
 _TIED = {TIE_NEG_TO_POS: ("Tvn", "Tsn", "Tssn1"), TIE_POS_TO_NEG: ("Tvp", "Tsp", "Tssp1")}
@@ -267,9 +267,7 @@ def run_fit(dataset: Dataset, config: dict, out, *, log=print) -> dict:
             friction_heldout_time_figure(problem, hfit, s["_heldout_rows"], out / "heldout_time.png")]
     doc["figures"] = [f.name for f in figs]
     doc["timing_s"]["total"] = time.time() - t0
-    atomic_write_json(out / "fit.json", doc)
-    atomic_write_text(out / "report.md", _fit_report(dataset, doc, figs))
-    log(f"wrote {out / 'fit.json'} ({doc['timing_s']['total']:.1f} s)")
+    write_results(out, "fit.json", doc, _fit_report(dataset, doc, figs), log=log)
     return doc
 
 
@@ -472,9 +470,7 @@ def run_diagnose(dataset: Dataset, config: dict, out, *, log=print) -> dict:
     figs = [friction_cv_figure(problem, d, out / "heldout_cv.png")]
     doc["figures"] = [f.name for f in figs]
     doc["timing_s"] = {"total": time.time() - t0}
-    atomic_write_json(out / "diagnosis.json", doc)
-    atomic_write_text(out / "report.md", _diag_report(dataset, doc, figs))
-    log(f"wrote {out / 'diagnosis.json'} ({doc['timing_s']['total']:.1f} s)")
+    write_results(out, "diagnosis.json", doc, _diag_report(dataset, doc, figs), log=log)
     return doc
 
 

@@ -62,3 +62,12 @@ def atomic_savefig(fig, path, **kwargs) -> pathlib.Path:
         fig.savefig(tmp, **kwargs)
 
     return _replace_atomically(path, pathlib.Path(path).suffix, write)
+
+
+def write_results(out, json_name: str, doc: dict, report: str, *, log=print) -> None:
+    """A command's outputs in `out`: `json_name` (the JSON document `doc`, SPEC §3) and `report.md`,
+    each written atomically, then one log line with `doc["timing_s"]["total"]` (s)."""
+    out = pathlib.Path(out)
+    atomic_write_json(out / json_name, doc)
+    atomic_write_text(out / "report.md", report)
+    log(f"wrote {out / json_name} and {out / 'report.md'} in {doc['timing_s']['total']:.1f} s")

@@ -31,7 +31,7 @@ from .._model.paper import PARAMETER_NAMES, PARAMETER_UNITS
 from .._plant.simulate import Simulator
 from .artifacts import fit_json_dataset, read_fit_json
 from .config import section_options
-from .io import atomic_write_json, atomic_write_text
+from .io import write_results
 
 __all__ = ["DEFAULTS", "SCHEMA", "run_sensitivity", "workflow_simulator"]
 
@@ -185,9 +185,7 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
         "figures": figs,
         "timing_s": timing,
     }
-    atomic_write_json(out / "sensitivity.json", result)
-    atomic_write_text(out / "report.md", _report(result))
-    log(f"wrote {out / 'sensitivity.json'} and {out / 'report.md'} in {timing['total']:.1f} s")
+    write_results(out, "sensitivity.json", result, _report(result), log=log)
     return result
 
 

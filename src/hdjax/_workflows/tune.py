@@ -75,7 +75,7 @@ from .._model.effects import Effects
 from .._model.paper import EQ9_COEFFICIENTS, PARAMETER_NAMES, Parameters, Smoothing
 from .artifacts import read_extended_model, read_fit_json
 from .config import section_options
-from .io import atomic_write_json, atomic_write_text
+from .io import write_results
 from .progress import task
 
 DEFAULTS = {
@@ -436,9 +436,7 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
         "figures": figs,
         "timing_s": {"total": total_t, **timing},
     }
-    atomic_write_json(out / "tune.json", result)
-    atomic_write_text(out / "report.md", _report(result))
-    log(f"wrote {out / 'tune.json'} and {out / 'report.md'} in {total_t:.1f} s")
+    write_results(out, "tune.json", result, _report(result), log=log)
     return result
 
 
