@@ -571,6 +571,9 @@ def fit_per_experiment(
 
     **Arguments:** as `fit_parameters`, plus `mask`: (experiments, len(free)) bool.
 
+    (About 100 lines through this docstring; the body is one pass: slots per experiment, then the
+    chunks that report progress, then the estimates read back.)
+
     **Returns:** a `PerExperimentFit`.
     """
     pmap = make_parameter_map(p0, free)
