@@ -37,10 +37,10 @@ from .._fit.friction import (
     rms_stats,
     vector_to_params,
 )
-from .._model.effects import PRESLIDING_DISTANCE, STATE_SCALE
+from .._model.effects import PRESLIDING_DISTANCE
 from .._model.friction_only import HARMONIC_SLOTS, FrictionParameters, FrictionStructure, presliding_state
 from .._model.paper import Smoothing, friction_basis, friction_parts
-from .._model.smooth import smooth_step
+from .._model.smooth import smooth_sign, smooth_step
 from .significance import FRICTION_RULES, Significance, forward_selection
 
 MAX_FOLDS = 5
@@ -225,11 +225,12 @@ def _start_delta(problem: FrictionProblem, fold: _Fold, w: np.ndarray) -> float:
     S = presliding_states(v, t, grid, problem.smoothing)[..., idx]  # (grid, E, n)
     vv = v[:, idx]
     y = problem.T[:, idx][on]
+    vs = problem.smoothing.velocity_scale
+    sign, step = smooth_sign(vv, vs), smooth_step(vv, vs)
     best, d_best = np.inf, grid[0]
     for g in range(len(grid)):
-        s = S[g]
-        us = smooth_step(s, STATE_SCALE)
-        A = np.asarray(friction_basis(vv, p.law.Tss2, problem.smoothing, direction=(s, us)))[on]
+        direction = p.presliding_friction.direction(sign, step, S[g])  # the model's own blend (presliding = 1)
+        A = np.asarray(friction_basis(vv, p.law.Tss2, problem.smoothing, direction=direction))[on]
         _, sse = _lstsq_gain(A, y)
         if sse < best:
             best, d_best = sse, grid[g]

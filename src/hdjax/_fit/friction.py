@@ -45,7 +45,7 @@ import optimistix as optx
 import scipy.signal
 
 from .._data.experiment import FrictionExperiment, stack_experiments
-from .._model.effects import PRESLIDING_DISTANCE, THERMAL_TAU, PositionDependentFriction
+from .._model.effects import PRESLIDING_DISTANCE, THERMAL_TAU, PositionDependentFriction, PositionDependentTorque
 from .._model.friction_only import (
     FRICTION_NAMES,
     HARMONIC_SLOTS,
@@ -224,10 +224,13 @@ class FrictionProblem:
         scale = np.ones(N_PARAMS)
         for k in ("Tvp", "Tvn"):
             scale[SLOT[k]] = self.sigma / vs
-        for k in ("Tsp", "Tsn", "Tssp1", "Tssn1", *HARMONIC_FIELDS["position_dependent_torque"]):
+        for k in ("Tsp", "Tsn", "Tssp1", "Tssn1"):
             scale[SLOT[k]] = self.sigma
-        for k in HARMONIC_FIELDS["position_dependent_friction"]:
-            scale[SLOT[k]] = PositionDependentFriction.amplitude_scale({})  # 0.1, as in the plant's fits
+        # the periodic terms' coefficient units, from the terms themselves (friction-only context)
+        ctx = {"torque_scale": float(self.sigma)}
+        for term in (PositionDependentFriction, PositionDependentTorque):
+            for k in HARMONIC_FIELDS[term.name]:
+                scale[SLOT[k]] = term.amplitude_scale(ctx)
         self.pmap = parameterisation(FRICTION_ENTRIES, scale)  # log slots keep scale 1: value = exp(x)
         self.scale = self.pmap.scale
         self.E, self.N = self.mask.shape

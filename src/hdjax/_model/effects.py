@@ -105,7 +105,8 @@ class Fitted(typing.NamedTuple):
 #: noise levels (`torque_noise` N·m, `velocity_noise` rad/s, `current_noise` A), base-fit values
 #: (`K1` N·m/rad, `coulomb` N·m), ranges (`torsion` rad, `torque_max` N·m), the sampling interval
 #: `dt` (s), the session's span `session_span` (s) and the free tests' RMS wave-generator speed
-#: `wave_generator_speed` (rad/s).
+#: `wave_generator_speed` (rad/s). The friction-only fits give `torque_scale` (N·m, the RMS friction
+#: torque) to their periodic terms' `amplitude_scale`.
 DataContext = collections.abc.Mapping[str, float]
 
 
