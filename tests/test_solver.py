@@ -311,6 +311,41 @@ def test_first_step_in_the_controller_takes_the_same_steps_as_dt0():
                         t1=0.1, y0=y0)
 
 
+def test_step_to_samples_takes_the_steps_of_clip_step_size_controller_to_the_bit():
+    """`StepToSamples(pid, ts)` (the next sample's index as state, O(1) per step) steps exactly as
+    diffrax's `ClipStepSizeController(pid, step_ts=ts)` (which compares every step with all of
+    `ts`): the same accepted and rejected steps, states and forward-mode tangents, on a stiff
+    oscillator driven by an input with kinks at jittered sample instants, stepping on past
+    rejected steps and ending on the last sample."""
+    rng = np.random.default_rng(3)
+    ts = jnp.asarray(np.arange(201) * 2.5e-3 + rng.uniform(-2e-5, 2e-5, 201) * (np.arange(201) > 0))
+    u = jnp.asarray(np.sign(np.sin(2 * np.pi * 7.0 * np.asarray(ts))))
+
+    def vf(t, y, k):
+        i = jnp.clip(jnp.searchsorted(ts, t) - 1, 0, ts.shape[0] - 2)
+        w = (t - ts[i]) / (ts[i + 1] - ts[i])
+        drive = (1 - w) * u[i] + w * u[i + 1]
+        return jnp.stack([y[1], -k * y[0] - 40.0 * jnp.tanh(y[1] / 1e-3) * 0.05 - 30.0 * y[1] + 50.0 * drive])
+
+    pid = dfx.PIDController(rtol=1e-6, atol=1e-9)
+
+    def solve(controller, k):
+        return dfx.diffeqsolve(dfx.ODETerm(vf), hdjax.Rodas3(), t0=ts[0], t1=ts[-1], dt0=None, y0=jnp.zeros(2), args=k,
+                               stepsize_controller=hdjax.FirstStep(controller, jnp.asarray(6e-4)),
+                               saveat=dfx.SaveAt(t0=True, steps=True), adjoint=dfx.ForwardMode(), max_steps=8192)
+
+    ref = solve(dfx.ClipStepSizeController(pid, step_ts=ts), 1e3)
+    new = solve(hdjax.StepToSamples(pid, ts), 1e3)
+    assert new.stats["num_steps"] == ref.stats["num_steps"] > new.stats["num_accepted_steps"] > ts.shape[0]
+    assert int(new.stats["num_accepted_steps"]) == int(ref.stats["num_accepted_steps"])
+    np.testing.assert_array_equal(np.asarray(new.ts), np.asarray(ref.ts))
+    np.testing.assert_array_equal(np.asarray(new.ys), np.asarray(ref.ys))
+    assert set(np.asarray(ts).tolist()) <= set(np.asarray(new.ts).tolist())  # every sample is a step end
+    tangent = lambda c: jax.jvp(lambda k: solve(c, k).ys, (1e3,), (1.0,))[1]  # noqa: E731
+    np.testing.assert_array_equal(np.asarray(tangent(hdjax.StepToSamples(pid, ts))),
+                                  np.asarray(tangent(dfx.ClipStepSizeController(pid, step_ts=ts))))
+
+
 def test_the_simulation_holds_no_host_callback():
     """JAX writes no program with a host callback to its persistent compilation cache
     (`hdjax.use_compilation_cache`); the plant's simulation has none (diffrax checks a traced

@@ -104,7 +104,7 @@ from ._model.paper import (
     motor_acceleration as motor_acceleration,
 )
 from ._model.smooth import smooth_sign as smooth_sign, smooth_signed_power as smooth_signed_power, smooth_step as smooth_step
-from ._plant.rosenbrock import FirstStep as FirstStep, Rodas3 as Rodas3, Ros34PW2 as Ros34PW2
+from ._plant.rosenbrock import FirstStep as FirstStep, Rodas3 as Rodas3, Ros34PW2 as Ros34PW2, StepToSamples as StepToSamples
 from ._plant.sharding import (
     COMPILATION_CACHE_ENV as COMPILATION_CACHE_ENV,
     HOST_DEVICES_ENV as HOST_DEVICES_ENV,

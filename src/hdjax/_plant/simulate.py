@@ -16,7 +16,7 @@ Numerics (measured, see `benchmarks/solver_choice.py` and the README): the struc
 $|\dot{\Delta\theta}|^{1/2}$ and the smoothed Coulomb step give the ODE a very large Jacobian near
 zero torsion rate and zero velocity; the default is an L-stable Rosenbrock method (`Rodas3`, see
 `hdjax._plant.rosenbrock`) with a PID step controller, stepping onto every sample instant
-(`ClipStepSizeController(step_ts=time)`) so that the kinks of the piecewise-linear current never
+(`StepToSamples`: the steps of `ClipStepSizeController(step_ts=time)` at O(1) per step) so that the kinks of the piecewise-linear current never
 fall inside a step.
 """
 
@@ -32,7 +32,7 @@ from .._data.experiment import Experiment
 from .._model.effects import Effects, stiffness_torque
 from .._model.paper import Drive, Parameters, Smoothing, compliance_torque, friction_parts
 from .._model.smooth import smooth_sign, smooth_signed_power, smooth_step
-from .rosenbrock import FirstStep, Rodas3, Ros34PW2
+from .rosenbrock import FirstStep, Rodas3, Ros34PW2, StepToSamples
 from .sharding import (
     experiment_batching,
     experiment_mesh,
@@ -520,7 +520,7 @@ def _simulate_one(p: Parameters, drive: Drive, exp: Experiment, effects: Effects
         dt0 = simulator.fixed_step
     else:
         pid = dfx.PIDController(rtol=simulator.rtol, atol=simulator.atol)
-        clipped = dfx.ClipStepSizeController(pid, step_ts=exp.time) if simulator.step_to_samples else pid
+        clipped = StepToSamples(pid, exp.time) if simulator.step_to_samples else pid
         # the first step, a quarter of the sample step, set in the controller (`FirstStep`): the
         # same steps as `dt0=dt / 4`, with no host callback in the compiled program
         controller, dt0 = FirstStep(clipped, dt / 4), None
