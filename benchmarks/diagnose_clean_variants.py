@@ -2,12 +2,13 @@
 laid out differently from the 20-dataset benchmark (`diagnose_independent.py`: 8 locked + 8 free
 records of 2.5 s at 1 kHz)?
 
-Eight clean datasets from the independent bench (`hdjax.bench.make_dataset`, every deviation on, no
+Thirteen clean datasets from the independent bench (`hdjax.bench.make_dataset`, every deviation on, no
 effect hidden), six of them changing one thing a user's bench may change: the sampling rate (500 Hz,
 2 kHz), the record length (6 + 6 records of 5 s), the mix of tests (12 locked + 4 free), the
 low-speed law (LuGre) and the noise (scaled with each record's range); two change the last two at
-once (at 1 kHz and at 500 Hz). The seeds (6001–6008) are
-used by no test and no other benchmark. Each dataset is diagnosed by the command a user runs,
+once (at 1 kHz and at 500 Hz); five change the sensors (`Deviations`): a tachometer ripple at order 1
+or 2 of the wave generator, a 12-bit output encoder, slow sensor filters, a slow current loop. The
+seeds (6001–6008, 7001–7005) are used by no test and no other benchmark. Each dataset is diagnosed by the command a user runs,
 `python -m hdjax.diagnose DIR --out DIR/result --quiet`, one after the other. Prints, per
 dataset, the findings (there should be none), the model_form items adopted and the time.
 
@@ -32,6 +33,15 @@ VARIANTS = {
     # both variant switches at once (twenty-ninth session)
     "c6007_lugre_perrec": dict(drive="hd2", seed=6007, low_speed="lugre", noise="per_record"),
     "c6008_lugre_perrec_500hz": dict(drive="hd1", seed=6008, sample_rate=500.0, low_speed="lugre", noise="per_record"),
+    # sensors unlike the default bench's (forty-second session; `deviations`: fields of `hdjax.bench.Deviations`):
+    # a tachometer ripple at a low order of the wave generator, where the periodic effects sit (the bench's
+    # default is order 11), as large as the tachometer noise; a 12-bit output encoder; slow strain gauge and
+    # tachometer filters; a slow current loop with three times the PWM ripple
+    "c7001_tacho_ripple_o2": dict(drive="hd2", seed=7001, deviations=dict(tacho_ripple=1.0, tacho_ripple_order=2)),
+    "c7002_tacho_ripple_o1": dict(drive="hd1", seed=7002, deviations=dict(tacho_ripple=1.0, tacho_ripple_order=1)),
+    "c7003_coarse_encoder": dict(drive="hd2", seed=7003, deviations=dict(encoder_counts=2**12)),
+    "c7004_slow_sensors": dict(drive="hd1", seed=7004, deviations=dict(torque_filter=(120.0, 180.0), tacho_filter=(80.0, 120.0))),
+    "c7005_weak_current_loop": dict(drive="hd2", seed=7005, deviations=dict(current_bandwidth=500.0, pwm_ripple=1.5)),
 }
 
 
@@ -44,14 +54,17 @@ def main(argv=None) -> int:
     unknown = [n for n in names if n not in VARIANTS]
     if unknown:
         ap.error(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
-    from hdjax.bench import make_dataset
+    from hdjax.bench import Deviations, make_dataset
 
     work = pathlib.Path(args.workdir) if args.workdir else pathlib.Path(tempfile.mkdtemp(prefix="hdjax-clean-"))
     rows = []
     for name in names:
         folder = work / name
         if not (folder / "dataset.yaml").exists():
-            make_dataset(folder, **VARIANTS[name])
+            kwargs = dict(VARIANTS[name])
+            if "deviations" in kwargs:
+                kwargs["deviations"] = Deviations(**kwargs["deviations"])
+            make_dataset(folder, **kwargs)
         t0 = time.perf_counter()
         run = subprocess.run([sys.executable, "-m", "hdjax.diagnose", str(folder), "--out", str(folder / "result"), "--quiet"],
                              capture_output=True, text=True)
