@@ -11,7 +11,8 @@ the time per dataset.
 
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
 [--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]
-[--low-speed lugre] [--noise per_record] [--viscous-exponent 0.7] [--no-physical-sign] [--consistency-any-mode]`.
+[--low-speed lugre] [--noise per_record] [--viscous-exponent 0.7] [--no-physical-sign] [--consistency-any-mode]
+[--neutral-record-change 0.02]`.
 
 `--low-speed lugre` and `--noise per_record` draw the datasets from a variant of the bench (a LuGre
 low-speed law with a stiction bump instead of exact stick–slip; sensor noise scaled with each
@@ -143,7 +144,11 @@ def main() -> int:
     ap.add_argument("--consistency-any-mode", action="store_true",
                     help="diagnose with consistency_in='any_acting' (records must improve in any mode where the candidate "
                          "gains beyond the effect size, not only in the mode where it gains most)")
+    ap.add_argument("--neutral-record-change", type=float, default=None,
+                    help="diagnose with Significance.neutral_record_change set to this share (held-out records a "
+                         "candidate moves by no more than it are neither for nor against it; default: the package's)")
     args = ap.parse_args()
+    neutral = {} if args.neutral_record_change is None else {"neutral_record_change": args.neutral_record_change}
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
@@ -164,7 +169,7 @@ def main() -> int:
         t_paper = time.perf_counter() - t0
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
                      two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
-                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign,
+                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign, **neutral,
                      log=print if args.log else (lambda *_: None))
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
@@ -175,7 +180,7 @@ def main() -> int:
                "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
                "bench": {"low_speed": args.low_speed, "noise": args.noise, "viscous_exponent": args.viscous_exponent},
                "physical_sign": not args.no_physical_sign,
-               "consistency_in": consistency_in,
+               "consistency_in": consistency_in, **neutral,
                "stages_s": {"paper_identification": round(t_paper, 1), **{k: round(v, 1) for k, v in d.timing.items()}}}
         rows.append(row)
         print(json.dumps(row), flush=True)

@@ -108,6 +108,29 @@ def test_consistency_in_any_mode_where_the_candidate_acts():
     assert not _judge(before, after, FOLDS, MODES, 2, Significance(consistency_in="any_acting"))["significant"]
 
 
+def test_consistency_leaves_out_records_the_candidate_does_not_move():
+    """A kinematic error [2] at SNR 4 on the independent bench (seed 7101, 2026-12-03) improved 5 of
+    8 free records by 7–70 % held out and left the other three within 1 %: the default rule counts
+    those three against it (5/8 < 75 %); with `neutral_record_change` = 2 % they are neither for nor
+    against it. A term that moves only two records is still refused: at least half the mode's
+    records are counted."""
+    modes = np.array(["constrained"] * 8 + ["free"] * 8)
+    folds = np.arange(16) % 2
+    free = [0.07, 0.62, 0.70, 0.40, 0.17, -0.01, -0.01, 0.0]
+    before, after = _residuals([0.0] * 8 + free)
+    s = _judge(before, after, folds, modes, 2, Significance())
+    assert s["acting_mode"] == "free" and s["refused_by"] == ["consistency"] and s["improved_fraction"] == 5 / 8
+    s = _judge(before, after, folds, modes, 2, Significance(neutral_record_change=0.02))
+    assert s["significant"] and s["improved_fraction"] == 1.0 and (s["improved_count"], s["counted_count"]) == (5, 5)
+    # the three untouched records made a little worse (−3 %) count again, and refuse it
+    before, after = _residuals([0.0] * 8 + free[:5] + [-0.03] * 3)
+    assert _judge(before, after, folds, modes, 2, Significance(neutral_record_change=0.02))["refused_by"] == ["consistency"]
+    # two records moved, both improved: counted as 2 of 4 (half the mode), refused
+    before, after = _residuals([0.0] * 8 + [0.6, 0.7] + [0.0] * 6)
+    s = _judge(before, after, folds, modes, 2, Significance(neutral_record_change=0.02))
+    assert "consistency" in s["refused_by"] and (s["improved_count"], s["counted_count"]) == (2, 4)
+
+
 def test_significance_takes_a_drift_by_its_between_record_share():
     """A drift over the session (thermal drift) gains little of the whole error but most of what a
     free parameter per record would: with its between-record share it passes the effect size."""

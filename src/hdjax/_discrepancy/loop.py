@@ -876,7 +876,8 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     mode_dchi = {md: float(np.sum(d[modes == md])) for md in mode_gains}
     # consistency over records: most held-out experiments of the mode where it acts must improve
     # (misfit that one term absorbs in a few records is no finding)
-    improved_in = {md: float(np.mean(d[modes == md] > 0)) for md in mode_gains}
+    counts = {md: rule.improved_fraction(d[modes == md], e_before[modes == md]) for md in mode_gains}
+    improved_in = {md: c[0] for md, c in counts.items()}
     acting = max(mode_gains, key=mode_gains.__getitem__)
     if rule.consistency_in == "any_acting":  # a mode where it gains beyond the effect size, consistent first
         large_modes = [md for md in mode_gains if mode_gains[md] > rule.min_relative_gain] or [acting]
@@ -908,7 +909,7 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     significant = not refused_by
     return dict(simulated=True, gain=float(gain), fold_gains=(1 - sse_after / sse_before).tolist(), delta_chi2=dchi,
                 refused_by=refused_by, best_experiment=int(np.flatnonzero(in_mode)[best]),
-                improved_count=int(np.sum(d_m > 0)), mode_count=int(d_m.size), chance=chance,
+                improved_count=counts[acting][1], counted_count=counts[acting][2], mode_count=int(d_m.size), chance=chance,
                 delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
                 harm_ratio=harm, per_experiment_gain=rel.tolist(),
                 mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
@@ -1089,7 +1090,10 @@ def _refusal(c: str, s: dict, rule: Significance, labels: list[str]) -> str:
                                         f"{s['chance']:.0f}"),
         "mode_trade": lambda: "it makes one kind of test worse by more than it may for what it gains on the other ("
                               + ", ".join(f"{k} {100 * v:+.1f} %" for k, v in s["mode_gains"].items()) + ")",
-        "consistency": lambda: (f"only {s['improved_count']} of the {s['mode_count']} {kind} tests improve held out "
+        "consistency": lambda: (f"only {s['improved_count']} of the {s.get('counted_count', s['mode_count'])} {kind} tests "
+                                + (f"it moves by more than {100 * rule.neutral_record_change:g} % (at least half of the "
+                                   f"{s['mode_count']} counted) " if s.get('counted_count', s['mode_count']) != s['mode_count'] else "")
+                                + "improve held out "
                                 f"(rule: {100 * rule.min_improved_fraction:g} %); the most, {labels[best]}, by "
                                 f"{gain_best:+.0f} %"),
         "record_loss": lambda: (f"{labels[s['contradicted_by']]} gets {-100 * s['per_experiment_gain'][s['contradicted_by']]:.0f} % "
@@ -1468,6 +1472,7 @@ def diagnose(
     form_competes: bool = False,
     consistency_in: str = OUTPUT_ERROR_RULES.consistency_in,
     physical_sign: bool = OUTPUT_ERROR_RULES.physical_sign,
+    neutral_record_change: float = OUTPUT_ERROR_RULES.neutral_record_change,
     labels: list[str] | None = None,
     log=lambda *_: None,
 ) -> Diagnosis:
@@ -1507,7 +1512,9 @@ def diagnose(
     acts must improve (`consistency_in`: that mode is the one where it gains most, "largest_gain", or
     any mode where it gains beyond `min_relative_gain`, "any_acting"; see `Significance`).
     `physical_sign`: an effect whose physics fixes the sign of its parameter (`PHYSICAL_SIGN`) is
-    named only with that sign in every held-out fold fit (default True).
+    named only with that sign in every held-out fold fit (default True). `neutral_record_change`: held-out
+    experiments a candidate moves by no more than this share of their error are left out of the
+    consistency rule, down to half of the mode's (`Significance.improved_fraction`).
     `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
     (re-whitened by their own noise model), computing only columns not seen yet.
     `labels`: a name per experiment (its file) for the texts of `unexplained` (default
@@ -1532,7 +1539,7 @@ def diagnose(
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
                                min_improved_fraction=min_improved_fraction, consistency_in=consistency_in,
-                               physical_sign=physical_sign)
+                               physical_sign=physical_sign, neutral_record_change=neutral_record_change)
     batch = stack_experiments(experiments)
     n_exp = len(experiments)
     sigma = noise_levels(batch)

@@ -20,6 +20,8 @@ and goes on until nothing is significant.
 import dataclasses
 from collections.abc import Callable, Sequence
 
+import numpy as np
+
 #: A finding may make one kind of test (locked or free) worse by at most this share of the held-out
 #: Δχ² it gains on the other (and at most the chance level when that is larger). A true order-2
 #: kinematic error on the independent bench gained 26 % on the free tests and cost 4 % on the locked
@@ -72,7 +74,10 @@ class Significance:
     variant of the bench, not the default: benchmarks/RESULTS.md, twenty-fifth session);
     `physical_sign` an effect whose physics fixes the sign of its parameter (β, μ, K3, Th, τd; the
     dynamic diagnosis's `hdjax._discrepancy.loop.PHYSICAL_SIGN`; the friction-only diagnosis's thermal
-    drift β) must have that sign in every held-out fit."""
+    drift β) must have that sign in every held-out fit; `neutral_record_change`: a held-out
+    experiment whose whitened squared error the candidate moves by no more than this share of it is
+    neither for nor against it in the consistency rule (0: every experiment of the mode counts; see
+    `improved_fraction`)."""
 
     min_relative_gain: float = 0.05
     min_improved_fraction: float = 0.75
@@ -84,6 +89,7 @@ class Significance:
     max_record_loss: float | None = MAX_RECORD_LOSS
     consistency_in: str = "largest_gain"
     physical_sign: bool = True
+    neutral_record_change: float = 0.0
 
     def __post_init__(self):
         if self.consistency_in not in ("largest_gain", "any_acting"):
@@ -96,6 +102,23 @@ class Significance:
     def consistent(self, improved_fraction: float) -> bool:
         """Enough held-out experiments (or folds) improved: at least `min_improved_fraction`."""
         return improved_fraction >= self.min_improved_fraction
+
+    def improved_fraction(self, change: np.ndarray, before: np.ndarray) -> tuple[float, int, int]:
+        """The consistency rule's share of improved held-out experiments, from the change `change`
+        (before − after, > 0: better) of each one's whitened squared error `before`; with the number
+        improved and the number counted. With `neutral_record_change` > 0 only experiments moved by
+        more than that share of their error count, but never fewer than half of them: an effect that
+        moves few records must improve more than half of all. A kinematic error [2] hidden at SNR 4
+        (bench seed 7101) improved 5 of 8 free records by 7–70 % and left the other three within 1 %;
+        counting those three against it refused a finding that gained 15 % held out."""
+        change, before = np.asarray(change, dtype=float), np.asarray(before, dtype=float)
+        improved = int(np.sum(change > 0))
+        if self.neutral_record_change <= 0.0:
+            return (improved / change.size if change.size else 0.0), improved, int(change.size)
+        moved = np.abs(change) > self.neutral_record_change * before
+        counted = max(int(np.sum(moved)), -(-change.size // 2))
+        improved = int(np.sum(change[moved] > 0))
+        return (improved / counted if counted else 0.0), improved, counted
 
     def contradicted(self, loss: float, loss_fraction: float, k: int) -> bool:
         """One held-out experiment lost `loss` (Δχ², sensor-noise units), `loss_fraction` of its own
