@@ -12,7 +12,8 @@ seeds (6001–6008, 7001–7005) are used by no test and no other benchmark. Eac
 `python -m hdjax.diagnose DIR --out DIR/result --quiet`, one after the other. Prints, per
 dataset, the findings (there should be none), the model_form items adopted and the time.
 
-Usage: `python benchmarks/diagnose_clean_variants.py [--only c6004_12l4f,...] [--workdir DIR]`.
+Usage: `python benchmarks/diagnose_clean_variants.py [--only c6004_12l4f,...] [--workdir DIR]
+[--negligible-record-loss 0.02]`.
 """
 
 import argparse
@@ -49,6 +50,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=None, help="comma-separated names of VARIANTS")
     ap.add_argument("--workdir", default=None, help="keep datasets and results here (default: a temporary folder)")
+    ap.add_argument("--negligible-record-loss", type=float, default=None,
+                    help="run the command with this `diagnose: negligible_record_loss` (a config file beside the "
+                         "dataset; default: the command's own default)")
     args = ap.parse_args(argv)
     names = args.only.split(",") if args.only else list(VARIANTS)
     unknown = [n for n in names if n not in VARIANTS]
@@ -65,8 +69,12 @@ def main(argv=None) -> int:
             if "deviations" in kwargs:
                 kwargs["deviations"] = Deviations(**kwargs["deviations"])
             make_dataset(folder, **kwargs)
+        target = str(folder)
+        if args.negligible_record_loss is not None:
+            target = str(folder / "neutral.yaml")
+            pathlib.Path(target).write_text(f"dataset: .\ndiagnose:\n  negligible_record_loss: {args.negligible_record_loss!r}\n")
         t0 = time.perf_counter()
-        run = subprocess.run([sys.executable, "-m", "hdjax.diagnose", str(folder), "--out", str(folder / "result"), "--quiet"],
+        run = subprocess.run([sys.executable, "-m", "hdjax.diagnose", target, "--out", str(folder / "result"), "--quiet"],
                              capture_output=True, text=True)
         dt = time.perf_counter() - t0
         if run.returncode != 0:

@@ -12,7 +12,7 @@ the time per dataset.
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
 [--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]
 [--low-speed lugre] [--noise per_record] [--viscous-exponent 0.7] [--no-physical-sign] [--consistency-any-mode]
-[--neutral-record-change 0.02]`.
+[--negligible-record-loss 0.02]`.
 
 `--low-speed lugre` and `--noise per_record` draw the datasets from a variant of the bench (a LuGre
 low-speed law with a stiction bump instead of exact stick–slip; sensor noise scaled with each
@@ -144,11 +144,11 @@ def main() -> int:
     ap.add_argument("--consistency-any-mode", action="store_true",
                     help="diagnose with consistency_in='any_acting' (records must improve in any mode where the candidate "
                          "gains beyond the effect size, not only in the mode where it gains most)")
-    ap.add_argument("--neutral-record-change", type=float, default=None,
-                    help="diagnose with Significance.neutral_record_change set to this share (held-out records a "
-                         "candidate moves by no more than it are neither for nor against it; default: the package's)")
+    ap.add_argument("--negligible-record-loss", type=float, default=None,
+                    help="diagnose with Significance.negligible_record_loss set to this share (a held-out record a "
+                         "candidate makes worse by at most this share does not count against it; default: the package's)")
     args = ap.parse_args()
-    neutral = {} if args.neutral_record_change is None else {"neutral_record_change": args.neutral_record_change}
+    neutral = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}

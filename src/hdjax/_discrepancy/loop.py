@@ -1091,8 +1091,8 @@ def _refusal(c: str, s: dict, rule: Significance, labels: list[str]) -> str:
         "mode_trade": lambda: "it makes one kind of test worse by more than it may for what it gains on the other ("
                               + ", ".join(f"{k} {100 * v:+.1f} %" for k, v in s["mode_gains"].items()) + ")",
         "consistency": lambda: (f"only {s['improved_count']} of the {s.get('counted_count', s['mode_count'])} {kind} tests "
-                                + (f"it moves by more than {100 * rule.neutral_record_change:g} % (at least half of the "
-                                   f"{s['mode_count']} counted) " if s.get('counted_count', s['mode_count']) != s['mode_count'] else "")
+                                + (f"counted (those made worse by at most {100 * rule.negligible_record_loss:g} % are left out, down to "
+                                   f"half of the {s['mode_count']}) " if s.get('counted_count', s['mode_count']) != s['mode_count'] else "")
                                 + "improve held out "
                                 f"(rule: {100 * rule.min_improved_fraction:g} %); the most, {labels[best]}, by "
                                 f"{gain_best:+.0f} %"),
@@ -1472,7 +1472,7 @@ def diagnose(
     form_competes: bool = False,
     consistency_in: str = OUTPUT_ERROR_RULES.consistency_in,
     physical_sign: bool = OUTPUT_ERROR_RULES.physical_sign,
-    neutral_record_change: float = OUTPUT_ERROR_RULES.neutral_record_change,
+    negligible_record_loss: float = OUTPUT_ERROR_RULES.negligible_record_loss,
     labels: list[str] | None = None,
     log=lambda *_: None,
 ) -> Diagnosis:
@@ -1512,9 +1512,9 @@ def diagnose(
     acts must improve (`consistency_in`: that mode is the one where it gains most, "largest_gain", or
     any mode where it gains beyond `min_relative_gain`, "any_acting"; see `Significance`).
     `physical_sign`: an effect whose physics fixes the sign of its parameter (`PHYSICAL_SIGN`) is
-    named only with that sign in every held-out fold fit (default True). `neutral_record_change`: held-out
-    experiments a candidate moves by no more than this share of their error are left out of the
-    consistency rule, down to half of the mode's (`Significance.improved_fraction`).
+    named only with that sign in every held-out fold fit (default True). `negligible_record_loss`: a held-out
+    experiment a candidate makes worse by no more than this share of its error does not count
+    against it in the consistency rule, down to half of the mode's (`Significance.improved_fraction`).
     `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
     (re-whitened by their own noise model), computing only columns not seen yet.
     `labels`: a name per experiment (its file) for the texts of `unexplained` (default
@@ -1539,7 +1539,7 @@ def diagnose(
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
                                min_improved_fraction=min_improved_fraction, consistency_in=consistency_in,
-                               physical_sign=physical_sign, neutral_record_change=neutral_record_change)
+                               physical_sign=physical_sign, negligible_record_loss=negligible_record_loss)
     batch = stack_experiments(experiments)
     n_exp = len(experiments)
     sigma = noise_levels(batch)

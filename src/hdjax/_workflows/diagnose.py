@@ -26,7 +26,7 @@ DEFAULTS = {
     "per_record_noise": True,  # weigh every experiment by its own sensor-noise level
     "misfit_scaling": True,  # scale each (experiment, channel) by its misfit where over the noise
     "min_improved_fraction": 0.75,  # of the held-out experiments where a candidate acts
-    "neutral_record_change": 0.0,  # held-out experiments moved by no more than this share count for neither side
+    "negligible_record_loss": 0.0,  # a held-out experiment made worse by at most this share does not count against
     "physical_sign": True,  # a signed effect (beta, mu, K3, Th, delay > 0, SPEC §4) only with that sign
 }
 
@@ -39,7 +39,7 @@ def _run_diagnose(paper, dataset, exps, files, opts, log):
         per_record_noise=bool(opts["per_record_noise"]),
         misfit_scaling=bool(opts["misfit_scaling"]),
         min_improved_fraction=float(opts["min_improved_fraction"]),
-        neutral_record_change=float(opts["neutral_record_change"]),
+        negligible_record_loss=float(opts["negligible_record_loss"]),
         physical_sign=bool(opts["physical_sign"]),
         base_steps=int(opts["base_steps"]),
         max_findings=int(opts["max_findings"]),
