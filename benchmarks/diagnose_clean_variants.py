@@ -71,7 +71,7 @@ def main(argv=None) -> int:
             make_dataset(folder, **kwargs)
         target = str(folder)
         if args.negligible_record_loss is not None:
-            target = str(folder / "neutral.yaml")
+            target = str(folder / "negligible_record_loss.yaml")
             pathlib.Path(target).write_text(f"dataset: .\ndiagnose:\n  negligible_record_loss: {args.negligible_record_loss!r}\n")
         t0 = time.perf_counter()
         run = subprocess.run([sys.executable, "-m", "hdjax.diagnose", target, "--out", str(folder / "result"), "--quiet"],

@@ -148,7 +148,7 @@ def main() -> int:
                     help="diagnose with Significance.negligible_record_loss set to this share (a held-out record a "
                          "candidate makes worse by at most this share does not count against it; default: the package's)")
     args = ap.parse_args()
-    neutral = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
+    rule_options = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
@@ -169,7 +169,7 @@ def main() -> int:
         t_paper = time.perf_counter() - t0
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
                      two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
-                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign, **neutral,
+                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign, **rule_options,
                      log=print if args.log else (lambda *_: None))
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
@@ -180,7 +180,7 @@ def main() -> int:
                "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
                "bench": {"low_speed": args.low_speed, "noise": args.noise, "viscous_exponent": args.viscous_exponent},
                "physical_sign": not args.no_physical_sign,
-               "consistency_in": consistency_in, **neutral,
+               "consistency_in": consistency_in, **rule_options,
                "stages_s": {"paper_identification": round(t_paper, 1), **{k: round(v, 1) for k, v in d.timing.items()}}}
         rows.append(row)
         print(json.dumps(row), flush=True)

@@ -3,7 +3,7 @@
 import numpy as np
 
 from hdjax import Significance
-from hdjax._discrepancy.loop import _drift_share, _FoldFits, _judge, _solve_normal, near_misses
+from hdjax._discrepancy.loop import _drift_share, _FoldFits, _judge, _refusal, _solve_normal, near_misses
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -132,6 +132,7 @@ def test_consistency_does_not_count_records_a_candidate_barely_makes_worse():
     before, after = _residuals([0.0] * 8 + [0.6, 0.7] + [-0.005] * 6)
     s = _judge(before, after, folds, modes, 2, rule)
     assert "consistency" in s["refused_by"] and (s["improved_count"], s["counted_count"]) == (2, 4)
+    assert "only 2 of the 4 free tests counted" in _refusal("cogging", s, rule, [f"r{i}" for i in range(16)])
     # the rule only ever counts fewer records against a candidate: never a lower share than the default
     rng = np.random.default_rng(3)
     for _ in range(200):

@@ -1090,9 +1090,9 @@ def _refusal(c: str, s: dict, rule: Significance, labels: list[str]) -> str:
                                         f"{s['chance']:.0f}"),
         "mode_trade": lambda: "it makes one kind of test worse by more than it may for what it gains on the other ("
                               + ", ".join(f"{k} {100 * v:+.1f} %" for k, v in s["mode_gains"].items()) + ")",
-        "consistency": lambda: (f"only {s['improved_count']} of the {s.get('counted_count', s['mode_count'])} {kind} tests "
+        "consistency": lambda: (f"only {s['improved_count']} of the {s['counted_count']} {kind} tests "
                                 + (f"counted (those made worse by at most {100 * rule.negligible_record_loss:g} % are left out, down to "
-                                   f"half of the {s['mode_count']}) " if s.get('counted_count', s['mode_count']) != s['mode_count'] else "")
+                                   f"half of the {s['mode_count']}) " if s["counted_count"] != s["mode_count"] else "")
                                 + "improve held out "
                                 f"(rule: {100 * rule.min_improved_fraction:g} %); the most, {labels[best]}, by "
                                 f"{gain_best:+.0f} %"),

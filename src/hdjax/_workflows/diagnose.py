@@ -8,6 +8,7 @@ import time
 from .._data.load import Dataset
 from .._discrepancy.evidence import covariate_drifts
 from .._discrepancy.loop import NOT_SCREENED, SCREENED_EFFECTS, diagnose
+from .._discrepancy.significance import OUTPUT_ERROR_RULES
 from .._fit.paper import identify_paper
 from .._model.effects import MODEL_FORM_NAMES
 from .._plant.simulate import Simulator
@@ -21,13 +22,13 @@ DEFAULTS = {
     "model_form": list(MODEL_FORM_NAMES),  # SPEC §4b base-model assumptions screened first
     "base_steps": 5,  # LM steps refining the base model
     "max_findings": 3,
-    "min_relative_gain": 0.05,  # held-out (misfit-scaled, whitened) SSE reduction where a finding acts
+    "min_relative_gain": OUTPUT_ERROR_RULES.min_relative_gain,  # held-out (misfit-scaled, whitened) SSE reduction where a finding acts
     "rtol": 1e-6,  # ODE tolerance of every simulation
     "per_record_noise": True,  # weigh every experiment by its own sensor-noise level
     "misfit_scaling": True,  # scale each (experiment, channel) by its misfit where over the noise
-    "min_improved_fraction": 0.75,  # of the held-out experiments where a candidate acts
-    "negligible_record_loss": 0.0,  # a held-out experiment made worse by at most this share does not count against
-    "physical_sign": True,  # a signed effect (beta, mu, K3, Th, delay > 0, SPEC §4) only with that sign
+    "min_improved_fraction": OUTPUT_ERROR_RULES.min_improved_fraction,  # of the held-out experiments where a candidate acts
+    "negligible_record_loss": OUTPUT_ERROR_RULES.negligible_record_loss,  # a held-out record made worse by at most this share does not count against
+    "physical_sign": OUTPUT_ERROR_RULES.physical_sign,  # a signed effect (beta, mu, K3, Th, delay > 0, SPEC §4) only with that sign
 }
 
 
