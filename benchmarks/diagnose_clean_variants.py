@@ -13,7 +13,7 @@ seeds (6001–6008, 7001–7005) are used by no test and no other benchmark. Eac
 dataset, the findings (there should be none), the model_form items adopted and the time.
 
 Usage: `python benchmarks/diagnose_clean_variants.py [--only c6004_12l4f,...] [--workdir DIR]
-[--negligible-record-loss 0.02]`.
+[--negligible-record-loss 0]`.
 """
 
 import argparse
