@@ -1699,15 +1699,15 @@ def _evidence_text(name, evidence, round_scores, finding, next_round_scores=None
     for c, v in others:
         if not round_scores[c].get("significant"):
             continue
+        passed = (f"; {c} passed every significance rule in the same round too ({100 * v:.1f} % against "
+                  f"{100 * g['relative_reduction']:.1f} %)")
         later = (next_round_scores or {}).get(c)
         if later is None:
-            txt += (f"; {c} passed every significance rule in the same round too ({100 * v:.1f} % against "
-                    f"{100 * g['relative_reduction']:.1f} %), and the larger held-out gain decided")
+            txt += passed + ", and the larger held-out gain decided"
         elif not later.get("significant"):
-            txt += (f"; {c} passed every significance rule in the same round too ({100 * v:.1f} % against "
-                    f"{100 * g['relative_reduction']:.1f} %), but with {name} in the model its held-out gain is "
-                    f"{100 * later['gain']:+.1f} % ({'simulated' if later.get('simulated') else 'predicted'}): the two "
-                    f"explain the same residual, and these data chose {name} by the larger held-out gain alone")
+            txt += (passed + f", but with {name} in the model its held-out gain is {100 * later['gain']:+.1f} % "
+                    f"({'simulated' if later.get('simulated') else 'predicted'}): the two explain the same residual, "
+                    f"and these data chose {name} by the larger held-out gain alone")
     return txt
 
 
