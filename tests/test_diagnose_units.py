@@ -406,7 +406,8 @@ def test_evidence_says_when_a_runner_up_passed_every_rule_and_then_explained_not
     """A finding's evidence text names a runner-up of its round that was significant too, and says
     the data chose by held-out gain alone where that runner-up is no longer significant once the
     finding is in the model (variant-bench seed 5012: strain-gauge ripple [1] named over the hidden
-    kinematic error [1]). Not said when the runner-up was refused, or is named in the next round."""
+    kinematic error [1]), however far down the round's ranking it was. Not said when the runner-up was
+    refused, or is named in the next round."""
     from hdjax._discrepancy.loop import _evidence_text
 
     finding = {"gain": {"relative_reduction": 0.062, "fold_reductions": [0.066, 0.058],
@@ -427,3 +428,12 @@ def test_evidence_says_when_a_runner_up_passed_every_rule_and_then_explained_not
     assert "passed every significance rule" not in _evidence_text("load_dependent_friction", {}, refused, finding, later)
     # the loop ended after this round (max_findings): the tie is still disclosed
     assert "the larger held-out gain decided" in _evidence_text("load_dependent_friction", {}, scores, finding, None)
+    # a significant candidate ranked third, below a refused one of larger gain, is disclosed as well
+    third = {"load_dependent_friction": {"gain": 0.062, "significant": True},
+             "cogging": {"gain": 0.060, "significant": False},
+             "thermal_drift": {"gain": 0.059, "significant": False},
+             "lost_motion": {"gain": 0.051, "significant": True}}
+    txt = _evidence_text("load_dependent_friction", {}, third, finding, {"lost_motion": {"gain": -0.02, "significant": False}})
+    assert "next best candidates: cogging (6.0 %), thermal_drift (5.9 %)" in txt
+    assert "lost_motion passed every significance rule in the same round too (5.1 % against 6.2 %)" in txt
+    assert "cogging passed" not in txt and "thermal_drift passed" not in txt

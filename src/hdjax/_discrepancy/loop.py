@@ -1679,8 +1679,8 @@ def parameter_units(name: str, parameters: dict) -> dict[str, str]:
 
 
 def _evidence_text(name, evidence, round_scores, finding, next_round_scores=None) -> str:
-    """The finding's (or model_form item's) evidence in words. A runner-up of its round that passed
-    every rule too is said to be so, with what it gains (or loses) in the next round, once `name` is
+    """The finding's (or model_form item's) evidence in words. Every other candidate of its round that
+    passed every rule too (however it ranked) is said to be so, with what it gains (or loses) in the next round, once `name` is
     in the model: where that is no longer significant, the two explained the same residual and the
     data chose between them by held-out gain alone (bench seed 5012 of the variant bench, 2026-12-03:
     a strain-gauge ripple [1] at +6.2 % named over the hidden kinematic error [1] at +5.7 %, which then
@@ -1693,10 +1693,12 @@ def _evidence_text(name, evidence, round_scores, finding, next_round_scores=None
     if name in PERIODIC:
         txt += (f"; residual order spectra peak at orders {evidence['candidate_orders']} per wave-generator turn"
                 f" (orders screened for {name}: {evidence['candidate_orders_per_effect'].get(name)})")
-    others = sorted(((c, s["gain"]) for c, s in round_scores.items() if c != name), key=lambda x: -x[1])[:2]
-    if others:
-        txt += "; next best candidates: " + ", ".join(f"{c} ({100 * v:.1f} %)" for c, v in others)
-    for c, v in others:
+    ranked = sorted(((c, s["gain"]) for c, s in round_scores.items() if c != name), key=lambda x: -x[1])
+    if ranked:
+        txt += "; next best candidates: " + ", ".join(f"{c} ({100 * v:.1f} %)" for c, v in ranked[:2])
+    # every candidate of the round that passed the rules, not only the two listed: one ranked below
+    # a refused candidate of larger gain is a look-alike all the same
+    for c, v in ranked:
         if not round_scores[c].get("significant"):
             continue
         passed = (f"; {c} passed every significance rule in the same round too ({100 * v:.1f} % against "
