@@ -437,3 +437,26 @@ def test_evidence_says_when_a_runner_up_passed_every_rule_and_then_explained_not
     assert "next best candidates: cogging (6.0 %), thermal_drift (5.9 %)" in txt
     assert "lost_motion passed every significance rule in the same round too (5.1 % against 6.2 %)" in txt
     assert "cogging passed" not in txt and "thermal_drift passed" not in txt
+
+
+def test_thermal_drift_is_not_screened_without_start_times_and_the_user_is_told_why():
+    """A dataset.yaml without `start_time` gives every record 0: a drift over the session is then
+    the same transient in every record, so `thermal_drift` is left out of the screening and the
+    reason, with what to give instead, goes to `unexplained` (the dynamic diagnosis, as the
+    friction-only one). Records spread over the session, or a single record, are not affected."""
+    from hdjax import make_experiment
+    from hdjax._discrepancy.loop import untestable
+
+    t = np.arange(200) * 1e-3
+    z = np.zeros_like(t)
+
+    def exps(starts):
+        return [make_experiment(t, z, z, z, mode="constrained", start_time=s) for s in starts]
+
+    names = ["kinematic_error", "thermal_drift"]
+    why = untestable(names, exps([0.0, 0.0, 0.0]))
+    assert list(why) == ["thermal_drift"] and "start_time" in why["thermal_drift"] and "0 s" in why["thermal_drift"]
+    assert untestable(names, exps([120.0, 120.0])).keys() == {"thermal_drift"}
+    assert untestable(names, exps([0.0, 30.0, 60.0])) == {}
+    assert untestable(names, exps([0.0])) == {}
+    assert untestable(["kinematic_error"], exps([0.0, 0.0])) == {}

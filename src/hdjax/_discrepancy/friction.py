@@ -159,7 +159,8 @@ def applicable(problem: FrictionProblem) -> dict[str, str | None]:
         f"only {rev} velocity reversals (need {MIN_REVERSALS}): presliding memory shows only where velocity changes sign",
         "thermal_drift": None if problem.E == 1 or np.ptp(np.asarray(problem.data.start_time)) > 0 else
         "every record starts at the same session time (no `start_time` spread): a drift over the session "
-        "cannot be told from a transient that every record shares",
+        "cannot be told from a transient that every record shares. To test it, give each experiment its `start_time` "
+        "(s since the session began, SPEC §2) in dataset.yaml",
     }
 
 

@@ -499,6 +499,27 @@ def _check_names(candidates, model_form, cross_validation) -> tuple[list[str], l
     return candidates, model_form
 
 
+def untestable(candidates, experiments: list[Experiment]) -> dict[str, str]:
+    """The candidates these data cannot test, each with why and what to record or give instead.
+
+    `thermal_drift` needs the records spread over the session (`start_time`, SPEC §2): when every
+    record starts at the same session time (a dataset.yaml without `start_time` gives 0 to all),
+    the term is the same function of the time within each record in every one of them, a transient
+    that every record shares, which no held-out gain can tell from a drift (the friction-only
+    diagnosis's `applicable` says the same). Measured on default-bench seed 5009 (thermal drift
+    hidden, named with its start times) with every `start_time` taken out of dataset.yaml: nothing
+    named, the drift's predicted held-out gain −0.000 (between-record share −0.01), and no word of
+    why before this check (2026-12-03)."""
+    out = {}
+    starts = [float(e.start_time) for e in experiments]
+    if "thermal_drift" in candidates and len(starts) > 1 and max(starts) == min(starts):
+        out["thermal_drift"] = (
+            f"every record starts at the same session time ({starts[0]:g} s; a dataset.yaml without `start_time` gives 0 "
+            "to all): a drift over the session cannot be told from a transient that every record shares. To test it, "
+            "give each experiment its `start_time` (s since the session began, SPEC §2) in dataset.yaml")
+    return out
+
+
 def _data_context(p_base: Parameters, batch: Experiment, sigma) -> dict:
     """Scales of the effect columns, from the data and the base parameters where possible (they
     would otherwise need a simulation): K1 (N·m/rad), Coulomb level and noise levels (N·m, rad/s,
@@ -1542,6 +1563,10 @@ def diagnose(
     if labels is not None and len(labels) != len(experiments):
         raise ValueError(f"`diagnose`: `labels` names {len(labels)} experiments, but {len(experiments)} were given; "
                          "pass one name per experiment (its file), or none.")
+    not_testable = untestable(candidates, experiments)
+    for name, why in not_testable.items():
+        log(f"diagnose: {name} not testable: {why}")
+    candidates = [c for c in candidates if c not in not_testable]
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
                                min_improved_fraction=min_improved_fraction, consistency_in=consistency_in,
@@ -1647,6 +1672,7 @@ def diagnose(
     if rounds and not any(sc["significant"] for sc in rounds[-1].values()):
         names = list(labels) if labels is not None else [f"experiment {i}" for i in range(len(experiments))]
         left += near_misses(rounds[-1], rule, names, orders_of)
+    left += [{"description": f"{name} not testable", "evidence": why} for name, why in not_testable.items()]
     timing["total"] = time.perf_counter() - t0
     base_n = loop.nrmse(base_res) if base_res is not None else {}
     return Diagnosis(findings=findings, model_form=form_items, unexplained=left, baseline={"heldout_nrmse": base_n},
