@@ -453,10 +453,28 @@ def test_thermal_drift_is_not_screened_without_start_times_and_the_user_is_told_
     def exps(starts):
         return [make_experiment(t, z, z, z, mode="constrained", start_time=s) for s in starts]
 
-    names = ["kinematic_error", "thermal_drift"]
+    names = ["lost_motion", "thermal_drift"]
     why = untestable(names, exps([0.0, 0.0, 0.0]))
     assert list(why) == ["thermal_drift"] and "start_time" in why["thermal_drift"] and "0 s" in why["thermal_drift"]
     assert untestable(names, exps([120.0, 120.0])).keys() == {"thermal_drift"}
     assert untestable(names, exps([0.0, 30.0, 60.0])) == {}
     assert untestable(names, exps([0.0])) == {}
-    assert untestable(["kinematic_error"], exps([0.0, 0.0])) == {}
+    assert untestable(["lost_motion"], exps([0.0, 0.0])) == {}
+
+
+def test_periodic_effects_are_not_screened_when_no_record_turns_the_wave_generator_a_full_turn():
+    """Locked tests turn the wave generator by N × the torsion, well under a turn: the periodic
+    effects are then left out, with why and what to record instead. One record turning it 1.1 turns
+    (measured motor velocity integrated) makes them testable; the other candidates are unaffected."""
+    from hdjax import make_experiment
+    from hdjax._discrepancy.loop import untestable
+
+    t = np.arange(1000) * 1e-3
+    z = np.zeros_like(t)
+    slow = make_experiment(t, z, z, 5.0 * np.sin(2 * np.pi * t), mode="constrained", start_time=0.0)  # ±0.8 rad
+    fast = make_experiment(t, z, z, np.full_like(t, 2.2 * np.pi), mode="free", output_position=z, start_time=9.0)
+    names = ["kinematic_error", "cogging", "lost_motion", "torque_sensor_ripple", "position_dependent_friction"]
+    why = untestable(names, [slow, slow])
+    assert set(why) == {"kinematic_error", "cogging", "torque_sensor_ripple", "position_dependent_friction"}
+    assert "1.59 rad" in why["cogging"] and "free-motion runs" in why["cogging"]
+    assert untestable(names, [slow, fast]) == {}

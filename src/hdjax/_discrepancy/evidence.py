@@ -17,6 +17,7 @@ from scipy import stats
 from .._data.experiment import CHANNEL_UNITS, Experiment
 from .._model.effects import MAX_ORDER, PERIODIC
 from .._model.paper import Drive, Parameters, friction_torque
+from .significance import Significance
 
 
 def order_spectrum(res: Float[np.ndarray, " sample"], theta: Float[np.ndarray, " sample"]) -> Float[np.ndarray, " order"]:
@@ -185,11 +186,13 @@ def torque_balance_terms(batch, traj, m, modes, p: Parameters, drive: Drive, nam
     return out
 
 
-def torque_balance_cv(batch, traj, m, modes, p, drive, name, order):
+def torque_balance_cv(batch, traj, m, modes, p, drive, name, order, rule: Significance | None = None):
     """Leave-one-record-out check of a periodic term in the torque-balance residual: each fast
     free-motion record is predicted by the weighted least-squares fit on the others. Returns the
-    total held-out gain, per-half gains, the improved fraction, the all-record coefficients and
-    those without each record; None with fewer than two records."""
+    total held-out gain, per-half gains, the improved fraction (counted by `rule.improved_fraction`,
+    as the output-error rounds count theirs: a record made worse by at most `negligible_record_loss`
+    of its error does not count against the term; default `Significance()`: every record counts), the
+    all-record coefficients and those without each record; None with fewer than two records."""
     terms = torque_balance_terms(batch, traj, m, modes, p, drive, name, order)
     if len(terms) < 2:
         return None
@@ -207,10 +210,12 @@ def torque_balance_cv(batch, traj, m, modes, p, drive, name, order):
         after.append(float(np.sum(((y - X @ beta) / s) ** 2)))
     before, after = np.array(before), np.array(after)
     halves = np.arange(len(terms)) % 2
+    fraction, n_improved, n_counted = (rule or Significance()).improved_fraction(before - after, before)
     return {"gain": float(1.0 - after.sum() / before.sum()),
             "fold_gains": [float(1.0 - after[halves == h].sum() / before[halves == h].sum()) for h in (0, 1)],
-            "improved_fraction": float(np.mean(after < before)), "n_improved": int(np.sum(after < before)),
-            "n_records": len(terms), "coef": fit(terms), "coef_without": without}
+            "improved_fraction": fraction, "n_improved": n_improved, "n_counted": n_counted,
+            "n_records": len(terms), "record_changes": (1.0 - after / before).tolist(),
+            "coef": fit(terms), "coef_without": without}
 
 
 def orders_per_candidate(orders, evidence) -> dict:

@@ -509,8 +509,26 @@ def untestable(candidates, experiments: list[Experiment]) -> dict[str, str]:
     diagnosis's `applicable` says the same). Measured on default-bench seed 5009 (thermal drift
     hidden, named with its start times) with every `start_time` taken out of dataset.yaml: nothing
     named, the drift's predicted held-out gain −0.000 (between-record share −0.01), and no word of
-    why before this check (2026-12-03)."""
+    why before this check (2026-12-03).
+
+    The periodic effects need a record that turns the wave generator through at least one full turn
+    (the order spectra count an order only over whole cycles): with the output locked it turns by
+    N times the torsion, well under a turn. On a locked-only bench dataset with a kinematic error [2]
+    hidden at 5× the noise (seed 8101, 2026-12-03) nothing was named and the output said nothing of
+    why: the log alone had "no order-spectrum peak … not screened". The turn is the measured motor
+    velocity integrated (trapezoid) over each record."""
     out = {}
+    periodic = [c for c in candidates if c in PERIODIC]
+    turns = [float(np.ptp(np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))])))
+             for e in experiments
+             for t, w in [(np.asarray(e.time)[np.asarray(e.mask) > 0], np.asarray(e.motor_velocity)[np.asarray(e.mask) > 0])]
+             if t.size > 1]
+    if periodic and max(turns, default=0.0) < 2.0 * math.pi:
+        why = (f"no record turns the wave generator through a full turn (the most: {max(turns, default=0.0):.2f} rad, from "
+               "the measured motor velocity): an effect periodic in its angle cannot be told from a smooth function of "
+               "the torsion over part of a cycle. To test it, record free-motion runs that turn the wave generator "
+               "through several turns in each direction")
+        out.update({c: why for c in periodic})
     starts = [float(e.start_time) for e in experiments]
     if "thermal_drift" in candidates and len(starts) > 1 and max(starts) == min(starts):
         out["thermal_drift"] = (
@@ -611,7 +629,7 @@ def _torque_balance_route(loop: _Loop, traj, evidence: dict, drive: Drive, *, re
         name = "position_dependent_friction" if where.endswith("sign(w)") else "cogging"
         if name in [f["effect"] for f in found] or name not in requested or len(found) >= max_findings:
             continue
-        cv = torque_balance_cv(batch, traj, m, modes, loop.p_base, drive, name, k)
+        cv = torque_balance_cv(batch, traj, m, modes, loop.p_base, drive, name, k, rule=rule)
         if cv is None:
             continue
         if name == "cogging":
@@ -620,7 +638,8 @@ def _torque_balance_route(loop: _Loop, traj, evidence: dict, drive: Drive, *, re
             if ratio > TB_RIPPLE_RATIO:
                 continue  # a strain-gauge ripple, not a cogging (see TB_RIPPLE_RATIO)
         log(f"diagnose: torque balance: {name} [{k}] peak {over_med:.1f}× median, held-out gain {100 * cv['gain']:+.2f} % "
-            f"(improved in {cv['n_improved']} of {cv['n_records']} records)")
+            f"(improved in {cv['n_improved']} of {cv['n_records']} records, {cv['n_counted']} counted; record changes "
+            f"{', '.join(f'{100 * x:+.0f}' for x in cv['record_changes'])} %)")
         if not (cv["gain"] > TB_MIN_GAIN and rule.consistent(cv["improved_fraction"])):
             continue
         jcols = _candidate_columns(cols, name, [k], offset=n_base)  # sin, cos of order k
@@ -1564,8 +1583,8 @@ def diagnose(
         raise ValueError(f"`diagnose`: `labels` names {len(labels)} experiments, but {len(experiments)} were given; "
                          "pass one name per experiment (its file), or none.")
     not_testable = untestable(candidates, experiments)
-    for name, why in not_testable.items():
-        log(f"diagnose: {name} not testable: {why}")
+    for why in dict.fromkeys(not_testable.values()):
+        log(f"diagnose: {', '.join(c for c, w in not_testable.items() if w == why)} not testable: {why}")
     candidates = [c for c in candidates if c not in not_testable]
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
@@ -1672,7 +1691,9 @@ def diagnose(
     if rounds and not any(sc["significant"] for sc in rounds[-1].values()):
         names = list(labels) if labels is not None else [f"experiment {i}" for i in range(len(experiments))]
         left += near_misses(rounds[-1], rule, names, orders_of)
-    left += [{"description": f"{name} not testable", "evidence": why} for name, why in not_testable.items()]
+    for why in dict.fromkeys(not_testable.values()):  # one entry per reason, naming every effect it concerns
+        names = [c for c, w in not_testable.items() if w == why]
+        left.append({"description": f"{', '.join(names)} not testable", "evidence": why})
     timing["total"] = time.perf_counter() - t0
     base_n = loop.nrmse(base_res) if base_res is not None else {}
     return Diagnosis(findings=findings, model_form=form_items, unexplained=left, baseline={"heldout_nrmse": base_n},
