@@ -41,8 +41,9 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    in e and as b in the torque residual; cogging is skipped where the torque residual's amplitude
    at that order exceeds `TB_RIPPLE_RATIO` = 0.5 of N × the fitted cogging amplitude) is fitted
    by weighted least squares on all fast free tests but one and must reduce the held-out test's
-   torque-balance residual in `min_improved_fraction` of them, and in total by more than
-   `TB_MIN_GAIN` (1 %). The evidence functions are in `hdjax._discrepancy.evidence`.
+   torque-balance residual in `min_improved_fraction` of them (counted by
+   `Significance.improved_fraction`, as in the rounds), and in total by more than `TB_MIN_GAIN` (1 %).
+   The evidence functions are in `hdjax._discrepancy.evidence`.
    The output-error rounds do not resolve these terms on a bench the paper model misfits: a torque
    disturbance integrates into the velocity with opposite phase in the two directions of motion.
    The term keeps that fit; its simulated output-error change is reported.
