@@ -462,19 +462,29 @@ def test_thermal_drift_is_not_screened_without_start_times_and_the_user_is_told_
     assert untestable(["lost_motion"], exps([0.0, 0.0])) == {}
 
 
-def test_periodic_effects_are_not_screened_when_no_record_turns_the_wave_generator_a_full_turn():
-    """Locked tests turn the wave generator by N × the torsion, well under a turn: the periodic
-    effects are then left out, with why and what to record instead. One record turning it 1.1 turns
-    (measured motor velocity integrated) makes them testable; the other candidates are unaffected."""
-    from hdjax import make_experiment
-    from hdjax._discrepancy.loop import untestable
+def test_periodic_orders_the_tests_cannot_resolve_are_said_to_be_untestable():
+    """Locked tests turn the wave generator by N × the torsion, rarely a turn: the orders that no
+    residual spectrum resolves (fewer than one cycle in the median test of every kind) are listed in
+    `unexplained` with why and what to record. The torque-balance route, where it has records,
+    resolves every order of the periodic effects it tests, not of the kinematic error."""
+    from hdjax._discrepancy.loop import MAX_ORDER, unresolved_orders
 
-    t = np.arange(1000) * 1e-3
-    z = np.zeros_like(t)
-    slow = make_experiment(t, z, z, 5.0 * np.sin(2 * np.pi * t), mode="constrained", start_time=0.0)  # ±0.8 rad
-    fast = make_experiment(t, z, z, np.full_like(t, 2.2 * np.pi), mode="free", output_position=z, start_time=9.0)
-    names = ["kinematic_error", "cogging", "lost_motion", "torque_sensor_ripple", "position_dependent_friction"]
-    why = untestable(names, [slow, slow])
-    assert set(why) == {"kinematic_error", "cogging", "torque_sensor_ripple", "position_dependent_friction"}
-    assert "1.59 rad" in why["cogging"] and "free-motion runs" in why["cogging"]
-    assert untestable(names, [slow, fast]) == {}
+    def det(turn):
+        return {"threshold": 1.0, "median_turn": turn,
+                "resolved": [k * turn / (2 * np.pi) >= 1.0 for k in range(1, MAX_ORDER + 1)]}
+
+    names = ["kinematic_error", "cogging", "lost_motion"]
+    locked = {"order_spectra_detection": {"constrained/torque (per-record normalised)": det(2.2),
+                                          "constrained/motor_velocity (per-record normalised)": det(2.2)}}
+    out = unresolved_orders(locked, names)
+    assert [u["description"] for u in out] == ["kinematic_error, cogging not testable at orders 1–2"]
+    assert "2.20 rad" in out[0]["evidence"] and "free-motion runs" in out[0]["evidence"]
+    assert unresolved_orders({"order_spectra_detection": {"c": det(0.5)}}, names)[0]["description"].endswith("at any order")
+    assert unresolved_orders({"order_spectra_detection": {"c": det(4.0)}}, names)[0]["description"].endswith("at order 1")
+    # free tests that turn it through a turn resolve every order
+    both = {"order_spectra_detection": {**locked["order_spectra_detection"], "free/torque (per-record normalised)": det(40.0)}}
+    assert unresolved_orders(both, names) == []
+    # the torque-balance route resolves cogging's orders, not the kinematic error's
+    tb = {**locked, "torque_balance_spectra": {"e": {}}}
+    assert [u["description"] for u in unresolved_orders(tb, names)] == ["kinematic_error not testable at orders 1–2"]
+    assert unresolved_orders(locked, ["lost_motion"]) == []

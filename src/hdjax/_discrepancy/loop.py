@@ -510,32 +510,48 @@ def untestable(candidates, experiments: list[Experiment]) -> dict[str, str]:
     diagnosis's `applicable` says the same). Measured on default-bench seed 5009 (thermal drift
     hidden, named with its start times) with every `start_time` taken out of dataset.yaml: nothing
     named, the drift's predicted held-out gain −0.000 (between-record share −0.01), and no word of
-    why before this check (2026-12-03).
-
-    The periodic effects need a record that turns the wave generator through at least one full turn
-    (the order spectra count an order only over whole cycles): with the output locked it turns by
-    N times the torsion, well under a turn. On a locked-only bench dataset with a kinematic error [2]
-    hidden at 5× the noise (seed 8101, 2026-12-03) nothing was named and the output said nothing of
-    why: the log alone had "no order-spectrum peak … not screened". The turn is the measured motor
-    velocity integrated (trapezoid) over each record."""
+    why before this check (2026-12-03). (The periodic effects' orders that the tests cannot resolve
+    are found later, from the residual spectra: `unresolved_orders`.)"""
     out = {}
-    periodic = [c for c in candidates if c in PERIODIC]
-    turns = [float(np.ptp(np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))])))
-             for e in experiments
-             for t, w in [(np.asarray(e.time)[np.asarray(e.mask) > 0], np.asarray(e.motor_velocity)[np.asarray(e.mask) > 0])]
-             if t.size > 1]
-    if periodic and max(turns, default=0.0) < 2.0 * math.pi:
-        why = (f"no record turns the wave generator through a full turn (the most: {max(turns, default=0.0):.2f} rad, from "
-               "the measured motor velocity): an effect periodic in its angle cannot be told from a smooth function of "
-               "the torsion over part of a cycle. To test it, record free-motion runs that turn the wave generator "
-               "through several turns in each direction")
-        out.update({c: why for c in periodic})
     starts = [float(e.start_time) for e in experiments]
     if "thermal_drift" in candidates and len(starts) > 1 and max(starts) == min(starts):
         out["thermal_drift"] = (
             f"every record starts at the same session time ({starts[0]:g} s; a dataset.yaml without `start_time` gives 0 "
             "to all): a drift over the session cannot be told from a transient that every record shares. To test it, "
             "give each experiment its `start_time` (s since the session began, SPEC §2) in dataset.yaml")
+    return out
+
+
+def unresolved_orders(evidence: dict, candidates) -> list[dict]:
+    """`unexplained` entries for the periodic candidates' orders that no residual spectrum resolves.
+
+    An order k counts in an order spectrum only where the tests of its kind turn the wave generator
+    through one of its cycles (2π/k rad, median over the tests, `spectral_peaks`); locked tests turn
+    it by N times the torsion, rarely a turn. So on a locked-only dataset the low orders, often all
+    of them, cannot be tested, and nothing said so before (bench seed 8101, 8 locked records with a
+    kinematic error [2] at 5× the noise, 2026-12-03: the median test turned it 2.2 rad, orders 1 and
+    2 unresolved, nothing named, the log's "no order-spectrum peak … not screened" the only trace).
+    The torque-balance route, where it has records (free tests turning ≥ 2 turns), resolves every
+    order of cogging, strain-gauge ripple and position-dependent friction; not of the kinematic error."""
+    periodic = [c for c in candidates if c in PERIODIC]
+    det = [d for d in evidence.get("order_spectra_detection", {}).values()]
+    resolved = np.array([any(d["resolved"][k] for d in det) for k in range(MAX_ORDER)], dtype=bool)
+    span = max((d.get("median_turn", 0.0) for d in det), default=0.0)
+    torque_balance = bool(evidence.get("torque_balance_spectra"))
+    groups: dict[tuple, list[str]] = {}
+    for c in periodic:
+        missing = () if (torque_balance and c != "kinematic_error") else tuple(int(k) + 1 for k in np.flatnonzero(~resolved))
+        if missing:
+            groups.setdefault(missing, []).append(c)
+    out = []
+    for missing, names in groups.items():
+        which = "any order" if len(missing) == MAX_ORDER else (
+            f"order {missing[0]}" if len(missing) == 1 else f"orders {missing[0]}–{missing[-1]}")
+        out.append({"description": f"{', '.join(names)} not testable at {which}",
+                    "evidence": f"the tests turn the wave generator by at most {span:.2f} rad (median over the tests of one kind); "
+                                f"a cycle of order k takes 2π/k rad, and an order is tested only over whole cycles, or a smooth "
+                                f"function of the torsion over part of a cycle would pass for it. To test {which}, record "
+                                "free-motion runs that turn the wave generator through several turns in each direction"})
     return out
 
 
@@ -1584,8 +1600,8 @@ def diagnose(
         raise ValueError(f"`diagnose`: `labels` names {len(labels)} experiments, but {len(experiments)} were given; "
                          "pass one name per experiment (its file), or none.")
     not_testable = untestable(candidates, experiments)
-    for why in dict.fromkeys(not_testable.values()):
-        log(f"diagnose: {', '.join(c for c, w in not_testable.items() if w == why)} not testable: {why}")
+    for name, why in not_testable.items():
+        log(f"diagnose: {name} not testable: {why}")
     candidates = [c for c in candidates if c not in not_testable]
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
@@ -1692,9 +1708,8 @@ def diagnose(
     if rounds and not any(sc["significant"] for sc in rounds[-1].values()):
         names = list(labels) if labels is not None else [f"experiment {i}" for i in range(len(experiments))]
         left += near_misses(rounds[-1], rule, names, orders_of)
-    for why in dict.fromkeys(not_testable.values()):  # one entry per reason, naming every effect it concerns
-        names = [c for c, w in not_testable.items() if w == why]
-        left.append({"description": f"{', '.join(names)} not testable", "evidence": why})
+    left += [{"description": f"{name} not testable", "evidence": why} for name, why in not_testable.items()]
+    left += unresolved_orders(evidence, requested_order)
     timing["total"] = time.perf_counter() - t0
     base_n = loop.nrmse(base_res) if base_res is not None else {}
     return Diagnosis(findings=findings, model_form=form_items, unexplained=left, baseline={"heldout_nrmse": base_n},
