@@ -488,3 +488,17 @@ def test_periodic_orders_the_tests_cannot_resolve_are_said_to_be_untestable():
     tb = {**locked, "torque_balance_spectra": {"e": {}}}
     assert [u["description"] for u in unresolved_orders(tb, names)] == ["kinematic_error not testable at orders 1–2"]
     assert unresolved_orders(locked, ["lost_motion"]) == []
+
+
+def test_a_diagnosis_that_names_nothing_points_to_what_the_data_could_not_test():
+    """The closing `unexplained` entry of an empty diagnosis names the effects (and orders) that the
+    entries before it found untestable, and says nothing more where there are none."""
+    from hdjax._workflows.diagnose import no_finding_entry
+
+    plain = no_finding_entry([{"description": "free torque residual periodic at order 5", "evidence": "..."}])
+    assert plain["description"] == "no candidate effect improves held-out experiments significantly"
+    assert "cannot test" not in plain["evidence"]
+    told = no_finding_entry([{"description": "thermal_drift not testable", "evidence": "..."},
+                             {"description": "kinematic_error, cogging not testable at orders 1–2", "evidence": "..."}])
+    assert told["evidence"].endswith("or it is one these data cannot test (thermal_drift; kinematic_error, cogging at orders 1–2: "
+                                     "see the entries above)")

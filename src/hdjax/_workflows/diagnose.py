@@ -106,6 +106,19 @@ class DiagnosisProgress:
         return False
 
 
+def no_finding_entry(unexplained: list[dict]) -> dict:
+    """The `unexplained` entry of a diagnosis that named nothing; it points to the entries that say
+    which effects (or orders) these data cannot test, where there are any."""
+    untested = [u["description"].split(" not testable")[0] + u["description"].split(" not testable")[1]
+                for u in unexplained if " not testable" in u["description"]]
+    return {
+        "description": "no candidate effect improves held-out experiments significantly",
+        "evidence": "the paper's model explains the data to within the noise, or the discrepancy is outside the "
+                    "effect vocabulary (see the order spectra and correlations in `evidence`)"
+                    + (f", or it is one these data cannot test ({'; '.join(untested)}: see the entries above)" if untested else ""),
+    }
+
+
 def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> dict:
     t_start = time.time()
     out = pathlib.Path(out)
@@ -126,11 +139,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     figs = diagnosis_figures(out, dataset, exps, files, d)
     unexplained = list(d.unexplained)
     if not d.findings:
-        unexplained.append({
-            "description": "no candidate effect improves held-out experiments significantly",
-            "evidence": "the paper's model explains the data to within the noise, or the discrepancy is outside the "
-                        "effect vocabulary (see the order spectra and correlations in `evidence`)",
-        })
+        unexplained.append(no_finding_entry(unexplained))
     result = {
         "schema": "hdjax.diagnosis/1",
         "dataset": dataset.name,
