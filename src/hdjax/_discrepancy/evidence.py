@@ -73,9 +73,10 @@ def spectral_peaks(batch, traj, m, modes, sigma):
             # an order counts only where the experiments turn the wave generator through at least
             # one of its cycles (median over experiments): over a fraction of a cycle a smooth
             # residual projects onto any low order (locked tests turn it by well under a turn)
-            cycles = np.arange(1, MAX_ORDER + 1) * float(np.median(span[sel])) / (2.0 * math.pi)
+            turn = float(np.median(span[sel]))
+            cycles = np.arange(1, MAX_ORDER + 1) * turn / (2.0 * math.pi)
             detection[f"{md}/{ch} (per-record normalised)"] = {"threshold": thr, "resolved": (cycles >= 1.0).tolist(),
-                                                                "median_turn": float(np.median(span[sel]))}
+                                                                "median_turn": turn}
             for k in np.where((amp > thr) & (cycles >= 1.0))[0]:
                 peaks.append((f"{md}/{ch}", int(k) + 1, float(amp[k]), thr, float(amp_si[k])))
     return spectra, peaks, detection

@@ -41,7 +41,7 @@ from .._model.effects import PRESLIDING_DISTANCE
 from .._model.friction_only import HARMONIC_SLOTS, FrictionParameters, FrictionStructure, presliding_state
 from .._model.paper import Smoothing, friction_basis, friction_parts
 from .._model.smooth import smooth_sign, smooth_step
-from .significance import FRICTION_RULES, Significance, forward_selection
+from .significance import FRICTION_RULES, Significance, drift_untestable, forward_selection
 
 MAX_FOLDS = 5
 N_BLOCKS = 5
@@ -157,10 +157,7 @@ def applicable(problem: FrictionProblem) -> dict[str, str | None]:
         "position_dependent_torque": why_pos,
         "presliding_friction": None if rev >= MIN_REVERSALS else
         f"only {rev} velocity reversals (need {MIN_REVERSALS}): presliding memory shows only where velocity changes sign",
-        "thermal_drift": None if problem.E == 1 or np.ptp(np.asarray(problem.data.start_time)) > 0 else
-        "every record starts at the same session time (no `start_time` spread): a drift over the session "
-        "cannot be told from a transient that every record shares. To test it, give each experiment its `start_time` "
-        "(s since the session began, SPEC §2) in dataset.yaml",
+        "thermal_drift": drift_untestable(np.asarray(problem.data.start_time)),
     }
 
 

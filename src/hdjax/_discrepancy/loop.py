@@ -160,7 +160,7 @@ from .evidence import (
     torque_balance_cv,
     unexplained,
 )
-from .significance import OUTPUT_ERROR_RULES, Significance, forward_selection
+from .significance import OUTPUT_ERROR_RULES, Significance, drift_untestable, forward_selection
 
 #: SPEC §4 effects of the plant that this loop does not screen (dropped from any candidate list):
 #: `presliding_friction`, tried inside `low_speed_friction`, took the default bench from 17 to 15 of
@@ -506,20 +506,14 @@ def untestable(candidates, experiments: list[Experiment]) -> dict[str, str]:
     `thermal_drift` needs the records spread over the session (`start_time`, SPEC §2): when every
     record starts at the same session time (a dataset.yaml without `start_time` gives 0 to all),
     the term is the same function of the time within each record in every one of them, a transient
-    that every record shares, which no held-out gain can tell from a drift (the friction-only
-    diagnosis's `applicable` says the same). Measured on default-bench seed 5009 (thermal drift
+    that every record shares, which no held-out gain can tell from a drift (`drift_untestable`, which
+    the friction-only diagnosis asks too). Measured on default-bench seed 5009 (thermal drift
     hidden, named with its start times) with every `start_time` taken out of dataset.yaml: nothing
     named, the drift's predicted held-out gain −0.000 (between-record share −0.01), and no word of
     why before this check (2026-12-03). (The periodic effects' orders that the tests cannot resolve
     are found later, from the residual spectra: `unresolved_orders`.)"""
-    out = {}
-    starts = [float(e.start_time) for e in experiments]
-    if "thermal_drift" in candidates and len(starts) > 1 and max(starts) == min(starts):
-        out["thermal_drift"] = (
-            f"every record starts at the same session time ({starts[0]:g} s; a dataset.yaml without `start_time` gives 0 "
-            "to all): a drift over the session cannot be told from a transient that every record shares. To test it, "
-            "give each experiment its `start_time` (s since the session began, SPEC §2) in dataset.yaml")
-    return out
+    why = drift_untestable([e.start_time for e in experiments]) if "thermal_drift" in candidates else None
+    return {} if why is None else {"thermal_drift": why}
 
 
 def unresolved_orders(evidence: dict, candidates) -> list[dict]:
@@ -534,7 +528,7 @@ def unresolved_orders(evidence: dict, candidates) -> list[dict]:
     The torque-balance route, where it has records (free tests turning ≥ 2 turns), resolves every
     order of cogging, strain-gauge ripple and position-dependent friction; not of the kinematic error."""
     periodic = [c for c in candidates if c in PERIODIC]
-    det = [d for d in evidence.get("order_spectra_detection", {}).values()]
+    det = list(evidence.get("order_spectra_detection", {}).values())
     resolved = np.array([any(d["resolved"][k] for d in det) for k in range(MAX_ORDER)], dtype=bool)
     span = max((d.get("median_turn", 0.0) for d in det), default=0.0)
     torque_balance = bool(evidence.get("torque_balance_spectra"))

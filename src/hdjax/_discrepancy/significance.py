@@ -133,6 +133,20 @@ class Significance:
         return between_record_share is not None and between_record_share >= self.min_drift_share
 
 
+def drift_untestable(start_times) -> str | None:
+    """Why a drift over the session (`thermal_drift`) cannot be tested on records starting at
+    `start_times` (s), or None where it can: one record, or records spread over the session. When every
+    record starts at the same session time (a dataset.yaml without `start_time` gives 0 to all), the
+    drift is the same function of the time within each record in every one of them. Both diagnoses,
+    the dynamic and the friction-only one, ask this."""
+    starts = [float(x) for x in start_times]
+    if len(starts) <= 1 or max(starts) > min(starts):
+        return None
+    return (f"every record starts at the same session time ({starts[0]:g} s; a dataset.yaml without `start_time` gives 0 "
+            "to all): a drift over the session cannot be told from a transient that every record shares. To test it, "
+            "give each experiment its `start_time` (s since the session began, SPEC §2) in dataset.yaml")
+
+
 #: The dynamic diagnosis's rules (`hdjax.diagnose` defaults). `negligible_record_loss` = 2 %: measured
 #: on both independent benches and 13 clean datasets from other sensors (benchmarks/RESULTS.md,
 #: forty-third and forty-fourth sessions): the same recall, no finding on clean data.

@@ -109,8 +109,7 @@ class DiagnosisProgress:
 def no_finding_entry(unexplained: list[dict]) -> dict:
     """The `unexplained` entry of a diagnosis that named nothing; it points to the entries that say
     which effects (or orders) these data cannot test, where there are any."""
-    untested = [u["description"].split(" not testable")[0] + u["description"].split(" not testable")[1]
-                for u in unexplained if " not testable" in u["description"]]
+    untested = [u["description"].replace(" not testable", "") for u in unexplained if " not testable" in u["description"]]
     return {
         "description": "no candidate effect improves held-out experiments significantly",
         "evidence": "the paper's model explains the data to within the noise, or the discrepancy is outside the "
