@@ -53,6 +53,9 @@ def main(argv=None) -> int:
     ap.add_argument("--negligible-record-loss", type=float, default=None,
                     help="run the command with this `diagnose: negligible_record_loss` (a config file beside the "
                          "dataset; default: the command's own default)")
+    ap.add_argument("--measured-angle", default=None, choices=("on", "off"),
+                    help="run the command with this `diagnose: measured_angle` (a config file beside the dataset; "
+                         "default: the command's own default)")
     args = ap.parse_args(argv)
     names = args.only.split(",") if args.only else list(VARIANTS)
     unknown = [n for n in names if n not in VARIANTS]
@@ -70,9 +73,14 @@ def main(argv=None) -> int:
                 kwargs["deviations"] = Deviations(**kwargs["deviations"])
             make_dataset(folder, **kwargs)
         target = str(folder)
+        options = {}
         if args.negligible_record_loss is not None:
-            target = str(folder / "negligible_record_loss.yaml")
-            pathlib.Path(target).write_text(f"dataset: .\ndiagnose:\n  negligible_record_loss: {args.negligible_record_loss!r}\n")
+            options["negligible_record_loss"] = repr(args.negligible_record_loss)
+        if args.measured_angle is not None:
+            options["measured_angle"] = "true" if args.measured_angle == "on" else "false"
+        if options:
+            target = str(folder / "options.yaml")
+            pathlib.Path(target).write_text("dataset: .\ndiagnose:\n" + "".join(f"  {k}: {v}\n" for k, v in options.items()))
         t0 = time.perf_counter()
         run = subprocess.run([sys.executable, "-m", "hdjax.diagnose", target, "--out", str(folder / "result"), "--quiet"],
                              capture_output=True, text=True)

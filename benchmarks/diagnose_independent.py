@@ -44,6 +44,7 @@ import numpy as np  # noqa: E402
 
 from hdjax import (  # noqa: E402
     PLANT_W_METHOD,
+    Simulator,
     diagnose_effects as diagnose,
     identify_paper,
     load_dataset,
@@ -147,7 +148,14 @@ def main() -> int:
     ap.add_argument("--negligible-record-loss", type=float, default=None,
                     help="diagnose with Significance.negligible_record_loss set to this share (a held-out record a "
                          "candidate makes worse by at most this share does not count against it; default: the package's)")
+    ap.add_argument("--angle", default=None, choices=("simulated", "measured"),
+                    help="the wave-generator angle of the periodic terms: the simulated one, or the measured one "
+                         "(`Simulator.measured_angle`; default: the package's)")
     args = ap.parse_args()
+    if args.angle is not None:
+        rule_options_sim = {"simulator": Simulator(rtol=1e-6, atol=1e-8, measured_angle=args.angle == "measured")}
+    else:
+        rule_options_sim = {}
     rule_options = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"
@@ -169,7 +177,7 @@ def main() -> int:
         t_paper = time.perf_counter() - t0
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
                      two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
-                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign, **rule_options,
+                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign, **rule_options, **rule_options_sim,
                      log=print if args.log else (lambda *_: None))
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)
@@ -180,7 +188,7 @@ def main() -> int:
                "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
                "bench": {"low_speed": args.low_speed, "noise": args.noise, "viscous_exponent": args.viscous_exponent},
                "physical_sign": not args.no_physical_sign,
-               "consistency_in": consistency_in, **rule_options,
+               "consistency_in": consistency_in, **rule_options, "angle": args.angle or "default",
                "stages_s": {"paper_identification": round(t_paper, 1), **{k: round(v, 1) for k, v in d.timing.items()}}}
         rows.append(row)
         print(json.dumps(row), flush=True)

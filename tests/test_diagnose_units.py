@@ -449,9 +449,10 @@ def test_thermal_drift_is_not_screened_without_start_times_and_the_user_is_told_
 
     t = np.arange(200) * 1e-3
     z = np.zeros_like(t)
+    torque = np.sin(2 * np.pi * 5 * t)  # through zero: lost motion is testable
 
     def exps(starts):
-        return [make_experiment(t, z, z, z, mode="constrained", start_time=s) for s in starts]
+        return [make_experiment(t, z, torque, z, mode="constrained", start_time=s) for s in starts]
 
     names = ["lost_motion", "thermal_drift"]
     why = untestable(names, exps([0.0, 0.0, 0.0]))
@@ -460,6 +461,26 @@ def test_thermal_drift_is_not_screened_without_start_times_and_the_user_is_told_
     assert untestable(names, exps([0.0, 30.0, 60.0])) == {}
     assert untestable(names, exps([0.0])) == {}
     assert untestable(["lost_motion"], exps([0.0, 0.0])) == {}
+
+
+def test_lost_motion_is_not_screened_where_no_torque_passes_through_zero():
+    """Lost motion is a dead band of the torsion around zero: tests whose torque stays on one side
+    of zero never enter it, so it is left out with the reason; one test that reverses suffices."""
+    from hdjax import make_experiment
+    from hdjax._discrepancy.loop import untestable
+
+    t = np.arange(200) * 1e-3
+    z = np.zeros_like(t)
+
+    def exp(torque):
+        return make_experiment(t, z, torque, z, mode="constrained", start_time=0.0)
+
+    one_sided = [exp(5.0 + np.sin(2 * np.pi * 5 * t)), exp(-3.0 - np.sin(2 * np.pi * 3 * t))]
+    why = untestable(["lost_motion", "nonlinear_stiffness"], one_sided)
+    assert list(why) == ["lost_motion"]
+    assert "-4" in why["lost_motion"] and "6 N·m" in why["lost_motion"] and "swings through zero" in why["lost_motion"]
+    assert untestable(["lost_motion"], one_sided + [exp(np.sin(2 * np.pi * 5 * t))]) == {}
+    assert untestable(["nonlinear_stiffness"], one_sided) == {}
 
 
 def test_periodic_orders_the_tests_cannot_resolve_are_said_to_be_untestable():

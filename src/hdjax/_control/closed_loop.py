@@ -238,7 +238,7 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
         nT, nw = (jnp.broadcast_to(jnp.asarray(x, dtype=float), (n,)) for x in noise)
     zero = jnp.zeros(())
     y0 = (zero,) * state_size(effects)  # at rest; the Dahl and presliding states relaxed
-    geometry = (zero, zero, zero)
+    geometry = (zero, zero, zero, None)
     solver = Rodas3()
     term = dfx.ODETerm(_vector_field)
     # eq. 9 with a fitted low-speed law (SPEC §4b), as in `simulate`; a recorded-current offset does

@@ -511,9 +511,31 @@ def untestable(candidates, experiments: list[Experiment]) -> dict[str, str]:
     hidden, named with its start times) with every `start_time` taken out of dataset.yaml: nothing
     named, the drift's predicted held-out gain −0.000 (between-record share −0.01), and no word of
     why before this check (2026-12-03). (The periodic effects' orders that the tests cannot resolve
-    are found later, from the residual spectra: `unresolved_orders`.)"""
+    are found later, from the residual spectra: `unresolved_orders`.)
+
+    `lost_motion` (a dead band of the torsion around zero) acts only where the transmitted torque
+    passes through zero: where no test's measured torque changes sign, it is left out too."""
+    out = {}
     why = drift_untestable([e.start_time for e in experiments]) if "thermal_drift" in candidates else None
-    return {} if why is None else {"thermal_drift": why}
+    if why is not None:
+        out["thermal_drift"] = why
+    why = torque_reversal_missing(experiments) if "lost_motion" in candidates else None
+    if why is not None:
+        out["lost_motion"] = why
+    return out
+
+
+def torque_reversal_missing(experiments: list[Experiment]) -> str | None:
+    """Why `lost_motion` cannot be tested on `experiments`, or None where it can: some test's
+    measured torque takes both signs."""
+    ranges = [(float(np.min(t)), float(np.max(t))) for t in
+              (np.asarray(e.torque)[np.asarray(e.mask, dtype=bool)] for e in experiments) if t.size]
+    if not ranges or any(lo < 0.0 < hi for lo, hi in ranges):
+        return None
+    lo, hi = min(r[0] for r in ranges), max(r[1] for r in ranges)
+    return (f"no test's measured torque changes sign (each stays on one side of zero; all together {lo:.3g} to {hi:.3g} N·m): "
+            "lost motion, a dead band of the torsion around zero, never acts in them. To test it, record a test whose "
+            "torque swings through zero (a locked-output sine or triangle about zero, or free motion that reverses)")
 
 
 def unresolved_orders(evidence: dict, candidates) -> list[dict]:
