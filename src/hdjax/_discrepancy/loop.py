@@ -24,8 +24,9 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    compete with the effects in every later round: one that wins is adopted, names nothing, and
    the round is screened again (a sensor lag hidden by a found ripple's misfit is otherwise taken
    up by a false `input_delay`).
-2. Evidence from residuals: order spectra against the simulated wave-generator angle θm (cycles
-   per turn) for torque, velocity and output position, split locked/free, and correlations of the
+2. Evidence from residuals: order spectra against the wave-generator angle θm (cycles per turn;
+   the measured angle, `Simulator.measured_angle`, the default here: the simulated one drifts by
+   radians in free motion) for torque, velocity and output position, split locked/free, and correlations of the
    residuals with torsion, torsion³, |T|·sign(ω), di/dt and session time. The periodic
    candidates (kinematic error, strain-gauge ripple, cogging, position-dependent friction) are
    screened only at the orders whose spectral peak stands out (at most three), and not at all when
@@ -87,7 +88,7 @@ Method (one JIT-compiled Jacobian per round, real simulations for every held-out
    harm ratio (what the held-out experiments it makes worse lose over what
    those it improves gain) is reported, not used: a real effect periodic in θm hurts free-motion
    tests whose simulated θm has drifted from the true one (measured 0.47 for a true kinematic
-   error), as much as a chance fit does. Greedy: the best finding is added to the model and the
+   error, with the simulated angle), as much as a chance fit does. Greedy: the best finding is added to the model and the
    loop repeats (up to `max_findings`).
 6. What is left: residual order-spectrum peaks and channels far above their sensor noise under the
    final model are listed as `unexplained`, and so are the near misses (`near_misses`): effects of
@@ -1541,7 +1542,7 @@ def diagnose(
     misfit_scaling: bool = True,
     min_improved_fraction: float = OUTPUT_ERROR_RULES.min_improved_fraction,
     reuse_jacobian: bool = True,
-    simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8),
+    simulator: Simulator = Simulator(rtol=1e-6, atol=1e-8, measured_angle=True),
     jacobian_rtol: float = 1e-5,
     jacobian_solver: dfx.AbstractSolver | None = PLANT_W_METHOD,
     cross_validation: str = "leave_one_out",

@@ -24,7 +24,7 @@ DEFAULTS = {
     "max_findings": 3,
     "min_relative_gain": OUTPUT_ERROR_RULES.min_relative_gain,  # held-out (misfit-scaled, whitened) SSE reduction where a finding acts
     "rtol": 1e-6,  # ODE tolerance of every simulation
-    "measured_angle": False,  # periodic terms at the measured wave-generator angle (`Simulator.measured_angle`)
+    "measured_angle": True,  # periodic terms at the measured wave-generator angle (`Simulator.measured_angle`)
     "per_record_noise": True,  # weigh every experiment by its own sensor-noise level
     "misfit_scaling": True,  # scale each (experiment, channel) by its misfit where over the noise
     "min_improved_fraction": OUTPUT_ERROR_RULES.min_improved_fraction,  # of the held-out experiments where a candidate acts
