@@ -39,10 +39,11 @@ def channel_nrmse(res, sigma, batch, m) -> dict:
 
 
 def spectral_peaks(batch, traj, m, modes, sigma):
-    """Order spectra of the residuals (simulated − measured) against the simulated wave-generator
-    angle, per mode and channel, and the orders whose amplitude stands out: above 6× the standard
-    deviation of a fitted sine amplitude under white noise of the channel's level, and above 3× the
-    spectrum's median, at orders the experiments cover by at least one cycle. Returns (spectra,
+    """Order spectra of the residuals (simulated − measured) against the trajectory's wave-generator
+    angle (the measured one under `Simulator.measured_angle`, the diagnosis's default), per mode
+    and channel, and the orders whose amplitude stands out: above 6× the standard deviation of a
+    fitted sine amplitude under white noise of the channel's level, and above 3× the spectrum's
+    median, at orders the experiments cover by at least one cycle. Returns (spectra,
     [(mode/channel, order, amplitude, threshold, amplitude in SI units)], detection): `detection`
     gives, per normalised spectrum, its threshold and which orders the experiments resolve."""
     res = {"torque": np.asarray(traj.torque) - np.asarray(batch.torque),
@@ -113,7 +114,8 @@ TB_RIPPLE_RATIO = 0.5
 def torque_balance_residuals(batch, traj, m, modes, p: Parameters, drive: Drive):
     """Per free-motion record that turns the wave generator ≥ 2 turns: (experiment index, e, ωm, θm)
     at the samples with |ωm| > `TB_MIN_SPEED`, e = Km·i − T/N − Tf(ω) − Jeff·dω/dt (N·m) from the
-    measured current, torque and velocity, θm the simulated wave-generator angle (rad)."""
+    measured current, torque and velocity, θm the trajectory's wave-generator angle (rad; measured
+    under `Simulator.measured_angle`)."""
     N, Km, Jeff = float(drive.gear_ratio), float(drive.torque_constant), float(p.Jeff)
     for i in np.where(modes == "free")[0]:
         mi = m[i]
