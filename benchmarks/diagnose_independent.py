@@ -152,10 +152,8 @@ def main() -> int:
                     help="the wave-generator angle of the periodic terms: the simulated one, or the measured one "
                          "(`Simulator.measured_angle`; default: the package's)")
     args = ap.parse_args()
-    if args.angle is not None:
-        rule_options_sim = {"simulator": Simulator(rtol=1e-6, atol=1e-8, measured_angle=args.angle == "measured")}
-    else:
-        rule_options_sim = {}
+    simulator_option = {} if args.angle is None else {
+        "simulator": Simulator(rtol=1e-6, atol=1e-8, measured_angle=args.angle == "measured")}
     rule_options = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"
@@ -177,7 +175,7 @@ def main() -> int:
         t_paper = time.perf_counter() - t0
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
                      two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
-                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign, **rule_options, **rule_options_sim,
+                     consistency_in=consistency_in, physical_sign=not args.no_physical_sign, **rule_options, **simulator_option,
                      log=print if args.log else (lambda *_: None))
         dt = time.perf_counter() - t0
         truth, found = hidden(case["effects"]), named(d)

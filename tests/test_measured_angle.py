@@ -66,13 +66,13 @@ def test_a_periodic_term_then_acts_in_phase_with_the_drive():
         mode="free", output_position=np.asarray(truth.output_position),
     )  # fmt: skip
     off = dataclasses.replace(p, Tvp=p.Tvp * 1.5, Tvn=p.Tvn * 1.5)
+    plain_truth = hdjax.simulate(p, drive, exp0, simulator=SIM)
+    imprint = np.asarray(truth.motor_velocity) - np.asarray(plain_truth.motor_velocity)
 
     def cogging_share(simulator):
         """The part of the recorded velocity's cogging imprint the simulation reproduces (1: all)."""
         with_cog = hdjax.simulate(off, drive, exp, effects=cog, simulator=simulator)
         without = hdjax.simulate(off, drive, exp, simulator=simulator)
-        plain_truth = hdjax.simulate(p, drive, exp0, simulator=SIM)
-        imprint = np.asarray(truth.motor_velocity) - np.asarray(plain_truth.motor_velocity)
         model = np.asarray(with_cog.motor_velocity) - np.asarray(without.motor_velocity)
         return float(np.dot(imprint, model) / np.dot(imprint, imprint))
 

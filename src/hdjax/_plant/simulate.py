@@ -209,13 +209,14 @@ class MeasuredAngle(eqx.Module):
     use_output: Float[Array, ""]
     use_motor: Float[Array, ""]
 
-    def wave_generator(self, t, th_m_simulated, q, q0, th_o0, th_m0, N):
-        """θm (rad) at time `t` (s): the motor encoder's where measured, else θm0 + N·((q − q0) +
-        (θo,measured(t) − θo0)) in free motion (the state's torsion `q`, the encoder's output
-        angle), else the simulated `th_m_simulated`."""
-        from_output = th_m0 + N * ((q - q0) + (self.output.evaluate(t) - th_o0))
-        th = jnp.where(self.use_output > 0, from_output, th_m_simulated)
-        return jnp.where(self.use_motor > 0, self.motor.evaluate(t), th)
+    def output_angle(self, t, th_o_simulated):
+        """The output angle (rad) at time `t` (s) that θm is built from: the encoder's in free
+        motion, else the simulated `th_o_simulated`."""
+        return jnp.where(self.use_output > 0, self.output.evaluate(t), th_o_simulated)
+
+    def motor_angle(self, t, th_m):
+        """θm (rad) at time `t` (s): the motor encoder's where measured, else `th_m`."""
+        return jnp.where(self.use_motor > 0, self.motor.evaluate(t), th_m)
 
 
 class UniformCubicBlendInput(eqx.Module):
@@ -291,9 +292,10 @@ def _outputs(p, drive, y, geometry, effects: Effects, smoothing: Smoothing, t=No
     q, wm, th_o, wo = y[:4]
     q0, th_o0, th_m0, measured = geometry
     N = drive.gear_ratio
-    th_m = th_m0 + N * ((q - q0) + (th_o - th_o0))
+    th_o_angle = th_o if measured is None else measured.output_angle(t, th_o)
+    th_m = th_m0 + N * ((q - q0) + (th_o_angle - th_o0))
     if measured is not None:
-        th_m = measured.wave_generator(t, th_m, q, q0, th_o0, th_m0, N)
+        th_m = measured.motor_angle(t, th_m)
     torsion = q + effects.periodic("kinematic_error", th_m)
     rate = wm / N - wo + effects.periodic_rate("kinematic_error", th_m, wm)
     T = stiffness_torque(p.K1, torsion, effects) + p.Tst * smooth_signed_power(
