@@ -104,10 +104,14 @@ TB_MIN_SPEED, TB_MEDIAN_RATIO, TB_MAX_RATIO = 1.0, 4.5, 1.8
 TB_MIN_GAIN = 0.01
 
 
-#: The route skips a cogging peak where the torque residual's amplitude at that order exceeds this
-#: fraction of N × the fitted cogging amplitude: a strain-gauge ripple b shows as b/N in the torque
-#: balance and as b in the torque residual (ratio 1.01 on the bench's ripple [3] case); a cogging c
-#: leaves far less than N·c in the torque (0.16 on seed 5002's cogging [4]).
+#: The route skips a cogging or position-dependent-friction peak where the torque residual's
+#: amplitude at that order exceeds this fraction of N × the term's fitted amplitude: a strain-gauge
+#: ripple b shows as b/N in the torque balance and as b in the torque residual (ratio 1.01 on the
+#: bench's ripple [3] case); a torque c at the motor, cogging or friction, leaves far less than N·c
+#: in the torque, which the output's inertia takes only its share of (0.16 on seed 5002's cogging
+#: [4]). Until 2026-12-03 only cogging was checked: on fresh default-bench seed 5027 a ripple [4]
+#: (bidirectional free records, so e·sign(ω) peaked too) was named as position-dependent friction
+#: [4] by the route, and the ripple by the rounds after it.
 TB_RIPPLE_RATIO = 0.5
 
 
@@ -188,6 +192,24 @@ def torque_balance_terms(batch, traj, m, modes, p: Parameters, drive: Drive, nam
         X = X - np.mean(X, axis=0)
         out.append((int(i), y, X, 1.4826 * float(np.median(np.abs(y))) or 1.0))
     return out
+
+
+def torque_balance_amplitude(p: Parameters, name: str, coef) -> float:
+    """The amplitude (N·m at the motor) of a torque-balance term with sin/cos coefficients `coef` in
+    `Effects` units: cogging's own; position-dependent friction's fraction times the mean of the
+    two Coulomb levels."""
+    amplitude = float(np.hypot(*coef))
+    if name == "cogging":
+        return amplitude
+    return amplitude * 0.5 * (abs(float(p.Tsp)) + abs(float(p.Tsn)))
+
+
+def strain_gauge_ratio(torque_amplitude: float, p: Parameters, drive: Drive, name: str, coef) -> float:
+    """The torque residual's amplitude at the term's order (N·m, 0 where the torque spectrum has no
+    peak there) over N × the term's amplitude at the motor (`torque_balance_amplitude`): about 1
+    for a strain-gauge ripple, which the torque balance shows as ripple/N; far below 1 for a torque
+    at the motor (see `TB_RIPPLE_RATIO`)."""
+    return torque_amplitude / (float(drive.gear_ratio) * torque_balance_amplitude(p, name, coef))
 
 
 def torque_balance_cv(batch, traj, m, modes, p, drive, name, order, rule: Significance | None = None):
