@@ -383,3 +383,82 @@ def covariate_drifts(per_experiment: dict, experiments: list[Experiment], *, max
     return sorted(out, key=lambda x: x["p_value"])
 
 
+
+
+#: `tachometer_lag` uses its estimate only where its standard error is below this share of it
+#: and below `TACHOMETER_LAG_MAX_SE` sample intervals, and it lies in [0, `TACHOMETER_LAG_MAX`]
+#: sample intervals.
+TACHOMETER_LAG_REL_SE = 0.05
+TACHOMETER_LAG_MAX_SE = 0.05
+TACHOMETER_LAG_MAX = 10.0
+
+
+def _torsion_from_torque(T: np.ndarray, t: np.ndarray, m: np.ndarray, p: Parameters) -> np.ndarray:
+    """The torsion Δθ (rad, output side) that eq. 5, T = K1·Δθ + Tst·|Δθ'|^α·sign(Δθ'), gives along
+    a measured torque T (N·m), by implicit Euler on the sample grid: each step solves the monotone
+    K1·h·(|u|/Tst)^(1/α) + |u| = |c| for the spring's share u = T − K1·Δθ by bisection (60 halvings).
+    Batched over records (rows); masked samples hold the last value."""
+    K1, Tst, alpha = float(p.K1), float(p.Tst), float(p.alpha)
+    x = np.zeros_like(T)
+    x[:, 0] = T[:, 0] / K1
+    for n in range(T.shape[1] - 1):
+        h = np.where(m[:, n + 1], t[:, n + 1] - t[:, n], 0.0)
+        c = T[:, n + 1] - K1 * x[:, n]
+        lo, hi = np.zeros_like(c), np.abs(c)
+        for _ in range(60):
+            v = 0.5 * (lo + hi)
+            f = v + K1 * h * (v / Tst) ** (1.0 / alpha) - np.abs(c)
+            hi, lo = np.where(f > 0, v, hi), np.where(f > 0, lo, v)
+        u = np.sign(c) * 0.5 * (lo + hi)
+        x[:, n + 1] = np.where(m[:, n + 1], (T[:, n + 1] - u) / K1, x[:, n])
+    return x
+
+
+def tachometer_lag(batch: Experiment, p: Parameters, drive: Drive) -> dict:
+    r"""The tachometer's lag behind the output encoder (s), measured without the plant's dynamics.
+
+    In free motion the output encoder reads θo = θm/N − Δθ and the tachometer a first-order
+    low-pass w of θm' with time constant τ; then θm/N − (1/N)∫w dt = (τ/N)·w + const exactly, so
+    θo + Δθ − (1/N)∫w dt = a + b·t + (τ/N)·w + g·(1/N)∫w dt, with a per-record intercept a, a
+    per-record ramp b (a tachometer offset integrates into one), a tachometer gain error g and Δθ
+    from the measured torque through eq. 5 (`_torsion_from_torque`). One least-squares fit of every
+    free record with an output encoder gives τ. The current and its noise do not enter: an input
+    delay moves θo and θm together and leaves this relation unchanged, so a lag fitted here tells a
+    sensor lag from an input delay, which the output-error fit cannot (both shift the simulated
+    velocity the same way).
+
+    **Returns:** `{"lag": τ or None, "std_error", "gain_error", "records", "residual_rms" (rad),
+    "reason"}`; `lag` is None where no free record has an output encoder, or the estimate is not
+    determined to `TACHOMETER_LAG_REL_SE` and `TACHOMETER_LAG_MAX_SE`·Δt, or lies outside
+    [0, `TACHOMETER_LAG_MAX`·Δt]; `reason` then says which."""
+    m = np.asarray(batch.mask)
+    rows = np.where((np.asarray(batch.free) > 0) & (np.asarray(batch.has_output_position) > 0))[0]
+    out = {"lag": None, "std_error": None, "gain_error": None, "records": int(rows.size), "residual_rms": None}
+    if rows.size == 0:
+        return {**out, "reason": "no free-motion record with an output encoder"}
+    t, w, T = (np.asarray(getattr(batch, k))[rows] for k in ("time", "motor_velocity", "torque"))
+    th_o, mk = np.asarray(batch.output_position)[rows], m[rows]
+    N = float(drive.gear_ratio)
+    x = _torsion_from_torque(T, t, mk, p)
+    dt = float(np.median(np.diff(t[0][mk[0]])))
+    ys, blocks = [], []
+    for j in range(rows.size):
+        k = mk[j]
+        tj, wj = t[j][k], w[j][k]
+        th_w = np.concatenate([[0.0], np.cumsum(0.5 * (wj[1:] + wj[:-1]) * np.diff(tj))]) / N
+        Z = np.zeros((tj.size, 2 * rows.size + 2))
+        Z[:, 2 * j], Z[:, 2 * j + 1], Z[:, -2], Z[:, -1] = 1.0, tj - tj[0], wj / N, th_w
+        ys.append(th_o[j][k] + x[j][k] - th_w)
+        blocks.append(Z)
+    y, Z = np.concatenate(ys), np.concatenate(blocks)
+    coef, *_ = np.linalg.lstsq(Z, y, rcond=None)
+    r = y - Z @ coef
+    s2 = float(r @ r) / max(y.size - Z.shape[1], 1)
+    se = float(np.sqrt(s2 * np.linalg.pinv(Z.T @ Z)[-2, -2]))
+    tau = float(coef[-2])
+    out.update(std_error=se, gain_error=float(coef[-1]), residual_rms=math.sqrt(s2), estimate=tau)
+    if not (se < TACHOMETER_LAG_REL_SE * abs(tau) and se < TACHOMETER_LAG_MAX_SE * dt):
+        return {**out, "reason": f"not determined: {tau * 1e3:.4f} ± {se * 1e3:.4f} ms"}
+    if not 0.0 <= tau <= TACHOMETER_LAG_MAX * dt:
+        return {**out, "reason": f"{tau * 1e3:.4f} ms lies outside [0, {TACHOMETER_LAG_MAX * dt * 1e3:.1f}] ms"}
+    return {**out, "lag": tau, "reason": ""}

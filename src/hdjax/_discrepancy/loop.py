@@ -159,6 +159,7 @@ from .evidence import (
     orders_per_candidate,
     residual_evidence,
     strain_gauge_ratio,
+    tachometer_lag,
     torque_balance_cv,
     unexplained,
 )
@@ -573,11 +574,13 @@ def unresolved_orders(evidence: dict, candidates) -> list[dict]:
     return out
 
 
-def _data_context(p_base: Parameters, batch: Experiment, sigma) -> dict:
+def _data_context(p_base: Parameters, batch: Experiment, sigma, tachometer_lag_s: float | None = None) -> dict:
     """Scales of the effect columns, from the data and the base parameters where possible (they
     would otherwise need a simulation): K1 (N·m/rad), Coulomb level and noise levels (N·m, rad/s,
-    A), largest torsion (rad) and torque (N·m), sample interval and session span (s), and the RMS
-    measured wave-generator speed of the free-motion tests (rad/s; of all tests if none is free)."""
+    A), largest torsion (rad) and torque (N·m), sample interval and session span (s), the RMS
+    measured wave-generator speed of the free-motion tests (rad/s; of all tests if none is free)
+    and, where given, the measured `tachometer_lag` (s; `sensor_bandwidth` then holds its velocity
+    lag there instead of fitting it)."""
     m = np.asarray(batch.mask)
     n_exp = m.shape[0]
     free = np.asarray(batch.free) > 0
@@ -595,7 +598,7 @@ def _data_context(p_base: Parameters, batch: Experiment, sigma) -> dict:
         "dt": float(np.median(np.diff(np.asarray(batch.time[0])[m[0]]))),
         "session_span": float(np.max(np.asarray(batch.start_time)) + np.max(np.asarray(batch.time))),
         "wave_generator_speed": speed if speed > 0.0 else 1.0,
-    }
+    } | ({} if tachometer_lag_s is None else {"tachometer_lag": float(tachometer_lag_s)})
 
 
 def _record_noise(experiments: list[Experiment], modes: np.ndarray, sigma, per_record: bool) -> np.ndarray:
@@ -1295,7 +1298,7 @@ def _describe_items(findings: list[dict], form_items: list[dict], final_effects:
 
 def _setup(p_base: Parameters, drive: Drive, experiments: list[Experiment], batch: Experiment, sigma, *, base_free,
            effects: list[str], simulator: Simulator, jacobian_rtol: float, jacobian_solver, per_record_noise: bool,
-           timing: dict, log):
+           timing: dict, log, tachometer_lag_s: float | None = None):
     """Every effect column (scaled from the data), the compiled problem (simulations at `simulator`'s
     tolerance, Jacobians at `jacobian_rtol`, with `jacobian_solver` where given and the simulator is
     not the fixed-step `VelocityImplicit`: they only set Gauss–Newton directions, every accepted
@@ -1307,7 +1310,7 @@ def _setup(p_base: Parameters, drive: Drive, experiments: list[Experiment], batc
     n_exp = len(experiments)
     m = np.asarray(batch.mask)
     modes = np.where(np.asarray(batch.free) > 0, "free", "constrained")
-    ctx = _data_context(p_base, batch, sigma)
+    ctx = _data_context(p_base, batch, sigma, tachometer_lag_s)
     cols = _all_columns(ctx)
     prob = _Problem(pmap=pmap, emap=_effect_map(cols), effects=_fixed_effect_settings(ctx, effects), drive=drive,
                     simulator=simulator, mesh=experiment_mesh() if jax.device_count() > 1 else None)
@@ -1554,6 +1557,7 @@ def diagnose(
     readapt_after_form: bool = True,
     two_stage_periodic: bool = True,
     form_competes: bool = False,
+    measure_tachometer_lag: bool = True,
     consistency_in: str = OUTPUT_ERROR_RULES.consistency_in,
     physical_sign: bool = OUTPUT_ERROR_RULES.physical_sign,
     negligible_record_loss: float = OUTPUT_ERROR_RULES.negligible_record_loss,
@@ -1588,7 +1592,11 @@ def diagnose(
     beside the effects in every later round, and one that wins is adopted instead of naming an
     effect (default False: round 1 only. True removed viscous-variant 5001's false input_delay and
     kept the default bench at 17/20, but on the small kinematic-error test dataset the sensor
-    offsets, adopted after the kinematic error [2], let a false cogging [2] be named beside it); `per_record_noise` weighs every experiment by its own
+    offsets, adopted after the kinematic error [2], let a false cogging [2] be named beside it).
+    `measure_tachometer_lag`: measure the tachometer's lag behind the output encoder from the
+    free-motion records (`hdjax._discrepancy.evidence.tachometer_lag`, no plant involved) and, where
+    it is determined, hold `sensor_bandwidth`'s velocity lag there instead of fitting it (default
+    True; the fitted lags otherwise take up an input delay); `per_record_noise` weighs every experiment by its own
     sensor-noise level (else one level per channel); `misfit_scaling` divides the whitened residual
     of every (experiment, channel) by its RMS under the current model where that exceeds 1 (misfit
     the model cannot explain counts as noise of that record, so no record's misfit dominates the
@@ -1643,15 +1651,28 @@ def diagnose(
                             throw=False).params
     timing["base_fit"] = time.perf_counter() - t0
 
+    # stage 1b: the tachometer's lag behind the output encoder, measured from the sensors alone
+    # (`tachometer_lag`); where it is determined, `sensor_bandwidth` holds its velocity lag there
+    # instead of fitting it, so that an input delay is not taken up by the fitted sensor lags
+    tacho = tachometer_lag(batch, p_base, drive) if measure_tachometer_lag and "sensor_bandwidth" in model_form else None
+    if tacho is not None:
+        log(f"diagnose: tachometer lag behind the output encoder: " + (
+            f"{tacho['lag'] * 1e3:.4f} ± {tacho['std_error'] * 1e3:.4f} ms ({tacho['records']} free records); "
+            "the velocity lag of sensor_bandwidth is held there" if tacho["lag"] is not None else
+            f"not used ({tacho['reason']}); sensor_bandwidth fits the velocity lag"))
+
     # stage 2: every effect column, the compiled problem, the base simulation
     loop, traj, pmap, ctx = _setup(p_base, drive, experiments, batch, sigma, base_free=base_free,
                                    effects=list(candidates) + model_form, simulator=simulator, jacobian_rtol=jacobian_rtol,
-                                   jacobian_solver=jacobian_solver, per_record_noise=per_record_noise, timing=timing, log=log)
+                                   jacobian_solver=jacobian_solver, per_record_noise=per_record_noise, timing=timing, log=log,
+                                   tachometer_lag_s=None if tacho is None else tacho["lag"])
     n_base, m, modes, cols = loop.n_base, loop.m, loop.modes, loop.cols
 
     # stage 3: evidence (residual spectra and covariate correlations of the base model), the orders
     # screened, the halves
     evidence, orders = residual_evidence(batch, traj, m, modes, sigma, p_base, drive)
+    if tacho is not None:
+        evidence["tachometer_lag"] = tacho
     requested_order = list(candidates)
     orders_of, candidates = _screened_orders(evidence, orders, candidates, log)
     folds, fit_folds = _folds(modes, cross_validation)

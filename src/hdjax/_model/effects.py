@@ -500,7 +500,16 @@ class SensorBandwidth(AbstractTerm):
 
     @classmethod
     def fitted(cls, ctx):
+        """Both lags; only the torque's where the data context holds a measured `tachometer_lag`
+        (s; `hdjax._discrepancy.evidence.tachometer_lag`), which `from_data` then sets."""
+        if "tachometer_lag" in ctx:
+            return (Fitted("torque_lag", ctx["dt"]),)
         return (Fitted("torque_lag", ctx["dt"]), Fitted("velocity_lag", ctx["dt"]))
+
+    @classmethod
+    def from_data(cls, ctx):
+        """The velocity lag at the data context's measured `tachometer_lag` (s), else 0."""
+        return cls(velocity_lag=ctx.get("tachometer_lag", 0.0))
 
 
 class InputBetweenSamples(AbstractTerm):
