@@ -394,19 +394,18 @@ TACHOMETER_LAG_MIN = 0.05
 TACHOMETER_LAG_MAX = 10.0
 
 
-def _torsion_from_torque(T: np.ndarray, t: np.ndarray, m: np.ndarray, p: Parameters, dT: np.ndarray | None = None):
+def _torsion_from_torque(T: np.ndarray, t: np.ndarray, m: np.ndarray, p: Parameters, dT: np.ndarray):
     """The torsion Δθ (rad, output side) that eq. 5, T = K1·Δθ + Tst·|Δθ'|^α·sign(Δθ'), gives along
     a measured torque T (N·m), by implicit Euler on the sample grid: each step solves the monotone
     K1·h·(|u|/Tst)^(1/α) + |u| = |c| for the spring's share u = T − K1·Δθ by bisection (60 halvings).
-    Batched over records (rows); masked samples hold the last value. With `dT` (records, time,
-    inputs), also the linearised response of Δθ to each torque perturbation dT along the same path
-    (same implicit step: δx₁ = (δx₀ + h·g'·δT₁)/(1 + h·g'·K1), g' = ∂Δθ'/∂u)."""
+    Batched over records (rows); masked samples hold the last value. Returns Δθ and its linearised
+    response to each torque perturbation of `dT` (records, time, inputs) along the same path (the
+    same implicit step: δx₁ = (δx₀ + h·g'·δT₁)/(1 + h·g'·K1), g' = ∂Δθ'/∂u)."""
     K1, Tst, alpha = float(p.K1), float(p.Tst), float(p.alpha)
     x = np.zeros_like(T)
     x[:, 0] = T[:, 0] / K1
-    dx = None if dT is None else np.zeros_like(dT)
-    if dx is not None:
-        dx[:, 0] = dT[:, 0] / K1
+    dx = np.zeros_like(dT)
+    dx[:, 0] = dT[:, 0] / K1
     for n in range(T.shape[1] - 1):
         h = np.where(m[:, n + 1], t[:, n + 1] - t[:, n], 0.0)
         c = T[:, n + 1] - K1 * x[:, n]
@@ -417,10 +416,9 @@ def _torsion_from_torque(T: np.ndarray, t: np.ndarray, m: np.ndarray, p: Paramet
             hi, lo = np.where(f > 0, v, hi), np.where(f > 0, lo, v)
         u = np.sign(c) * 0.5 * (lo + hi)
         x[:, n + 1] = np.where(m[:, n + 1], (T[:, n + 1] - u) / K1, x[:, n])
-        if dx is not None:
-            hg = (h * (np.abs(u) / Tst) ** (1.0 / alpha - 1.0) / (alpha * Tst))[:, None]
-            dx[:, n + 1] = np.where(m[:, n + 1, None], (dx[:, n] + hg * dT[:, n + 1]) / (1.0 + hg * K1), dx[:, n])
-    return x if dx is None else (x, dx)
+        hg = (h * (np.abs(u) / Tst) ** (1.0 / alpha - 1.0) / (alpha * Tst))[:, None]
+        dx[:, n + 1] = np.where(m[:, n + 1, None], (dx[:, n] + hg * dT[:, n + 1]) / (1.0 + hg * K1), dx[:, n])
+    return x, dx
 
 
 def tachometer_lag(batch, p: Parameters, drive: Drive) -> dict:
