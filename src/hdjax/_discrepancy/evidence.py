@@ -394,10 +394,32 @@ TACHOMETER_LAG_MIN = 0.05
 TACHOMETER_LAG_MAX = 10.0
 
 
+def _spring_share(c: np.ndarray, kh: np.ndarray, Tst: float, alpha: float) -> np.ndarray:
+    """The root v ∈ [0, c] of v + kh·(v/Tst)^(1/α) = c (c ≥ 0, kh ≥ 0): Newton from v = c, which
+    descends monotonically onto it where 1/α ≥ 1 (the left side is convex and increasing), to a
+    relative 1e-13; bisection (60 halvings) otherwise."""
+    r = 1.0 / alpha
+    if r >= 1.0:
+        v = c.copy()
+        for _ in range(100):
+            f = v + kh * (v / Tst) ** r - c
+            step = f / (1.0 + kh * r * (v / Tst) ** (r - 1.0) / Tst)
+            v = np.maximum(v - step, 0.0)
+            if np.all(np.abs(step) <= 1e-13 * np.maximum(c, 1e-300)):
+                break
+        return v
+    lo, hi = np.zeros_like(c), c.copy()
+    for _ in range(60):
+        v = 0.5 * (lo + hi)
+        f = v + kh * (v / Tst) ** r - c
+        hi, lo = np.where(f > 0, v, hi), np.where(f > 0, lo, v)
+    return 0.5 * (lo + hi)
+
+
 def _torsion_from_torque(T: np.ndarray, t: np.ndarray, m: np.ndarray, p: Parameters, dT: np.ndarray):
     """The torsion Δθ (rad, output side) that eq. 5, T = K1·Δθ + Tst·|Δθ'|^α·sign(Δθ'), gives along
     a measured torque T (N·m), by implicit Euler on the sample grid: each step solves the monotone
-    K1·h·(|u|/Tst)^(1/α) + |u| = |c| for the spring's share u = T − K1·Δθ by bisection (60 halvings).
+    K1·h·(|u|/Tst)^(1/α) + |u| = |c| for the spring's share u = T − K1·Δθ (`_spring_share`).
     Batched over records (rows); masked samples hold the last value. Returns Δθ and its linearised
     response to each torque perturbation of `dT` (records, time, inputs) along the same path (the
     same implicit step: δx₁ = (δx₀ + h·g'·δT₁)/(1 + h·g'·K1), g' = ∂Δθ'/∂u)."""
@@ -409,12 +431,7 @@ def _torsion_from_torque(T: np.ndarray, t: np.ndarray, m: np.ndarray, p: Paramet
     for n in range(T.shape[1] - 1):
         h = np.where(m[:, n + 1], t[:, n + 1] - t[:, n], 0.0)
         c = T[:, n + 1] - K1 * x[:, n]
-        lo, hi = np.zeros_like(c), np.abs(c)
-        for _ in range(60):
-            v = 0.5 * (lo + hi)
-            f = v + K1 * h * (v / Tst) ** (1.0 / alpha) - np.abs(c)
-            hi, lo = np.where(f > 0, v, hi), np.where(f > 0, lo, v)
-        u = np.sign(c) * 0.5 * (lo + hi)
+        u = np.sign(c) * _spring_share(np.abs(c), K1 * h, Tst, alpha)
         x[:, n + 1] = np.where(m[:, n + 1], (T[:, n + 1] - u) / K1, x[:, n])
         hg = (h * (np.abs(u) / Tst) ** (1.0 / alpha - 1.0) / (alpha * Tst))[:, None]
         dx[:, n + 1] = np.where(m[:, n + 1, None], (dx[:, n] + hg * dT[:, n + 1]) / (1.0 + hg * K1), dx[:, n])
@@ -459,24 +476,29 @@ def tachometer_lag(batch, p: Parameters, drive: Drive) -> dict:
     ripple = np.concatenate([np.sin(q * th[..., None]), np.cos(q * th[..., None])], axis=-1)
     x, dx = _torsion_from_torque(T, t, mk, p, ripple)
     dt = float(np.median(np.diff(t[0][mk[0]])))
-    ys, blocks = [], []
-    per = 2 + 4 * MAX_ORDER  # intercept, ramp, sin and cos of orders 1..MAX_ORDER of θm, their torsion responses
+    # per record, its own columns (intercept, ramp, harmonics of θm, their torsion responses) are
+    # projected out of y and of the shared columns (τ, gain); one least-squares fit of what is left
+    # (Frisch–Waugh: the same τ and standard error as the fit with every column, far cheaper)
+    ys, shared, n_rows, n_cols = [], [], 0, 2
     for j in range(rows.size):
         k = mk[j]
         tj, wj = t[j][k], w[j][k]
         th_w = np.concatenate([[0.0], np.cumsum(0.5 * (wj[1:] + wj[:-1]) * np.diff(tj))]) / N
-        Z = np.zeros((tj.size, per * rows.size + 2))
-        Z[:, per * j], Z[:, per * j + 1], Z[:, -2], Z[:, -1] = 1.0, tj - tj[0], wj / N, th_w
-        Z[:, per * j + 2: per * (j + 1)] = np.concatenate([ripple[j][k], dx[j][k]], axis=1)
-        ys.append(th_o[j][k] + x[j][k] - th_w)
-        blocks.append(Z)
-    y, Z = np.concatenate(ys), np.concatenate(blocks)
-    coef, *_ = np.linalg.lstsq(Z, y, rcond=None)
-    r = y - Z @ coef
-    s2 = float(r @ r) / max(y.size - Z.shape[1], 1)
-    se = float(np.sqrt(s2 * np.linalg.pinv(Z.T @ Z)[-2, -2]))
-    tau = float(coef[-2])
-    out.update(std_error=se, gain_error=float(coef[-1]), residual_rms=math.sqrt(s2), estimate=tau)
+        own = np.concatenate([np.ones((tj.size, 1)), (tj - tj[0])[:, None], ripple[j][k], dx[j][k]], axis=1)
+        u_own, sv, _ = np.linalg.svd(own / np.maximum(np.linalg.norm(own, axis=0), 1e-300), full_matrices=False)
+        q_own = u_own[:, sv > 1e-9 * sv[0]]  # a basis of what they span (a short record's harmonics coincide)
+        X = np.stack([wj / N, th_w], axis=1)
+        y_j = th_o[j][k] + x[j][k] - th_w
+        ys.append(y_j - q_own @ (q_own.T @ y_j))
+        shared.append(X - q_own @ (q_own.T @ X))
+        n_rows, n_cols = n_rows + tj.size, n_cols + q_own.shape[1]
+    y, X = np.concatenate(ys), np.concatenate(shared)
+    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    r = y - X @ coef
+    s2 = float(r @ r) / max(n_rows - n_cols, 1)
+    se = float(np.sqrt(s2 * np.linalg.pinv(X.T @ X)[0, 0]))
+    tau = float(coef[0])
+    out.update(std_error=se, gain_error=float(coef[1]), residual_rms=math.sqrt(s2), estimate=tau)
     if not (se < TACHOMETER_LAG_REL_SE * abs(tau) and se < TACHOMETER_LAG_MAX_SE * dt):
         return {**out, "reason": f"not determined: {tau * 1e3:.4f} ± {se * 1e3:.4f} ms"}
     if not TACHOMETER_LAG_MIN * dt <= tau <= TACHOMETER_LAG_MAX * dt:
