@@ -53,7 +53,10 @@ NOT_YET = {
     "input_delay": "named by the loop before readapt_after_form became the default (2026-11-27); since, the re-fitted "
                    "sensor lags take up most of the 0.5 ms delay: +2.6 % held out, folds 3.2 / 2.2 %, 3 of 4 improved, "
                    "below the 5 % effect size. At full size too (seed 908, 2026-12-01): predicted +1.6 % after "
-                   "sensor_bandwidth and sensor_offset",
+                   "sensor_bandwidth and sensor_offset. With the tachometer lag measured (2026-12-03: 0.322 ms, bench "
+                   "0.321 ms) the velocity lag no longer takes it, but the fitted torque lag does (0.472 ms: the bench's "
+                   "0.279 ms + the 0.213 ms delay); input_delay predicted -27 % after viscous_friction_law (+61 % held "
+                   "out with kappa 1.01: one free record's held-out fit), sensor_offset and sensor_bandwidth",
 }
 
 
