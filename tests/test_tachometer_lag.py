@@ -80,3 +80,16 @@ def test_no_lag_gives_no_lag_to_hold():
 def test_no_free_record_with_an_encoder_measures_nothing(kind):
     r = tachometer_lag(_records(5e-4, free=kind != "locked", encoder=kind != "no_encoder"), P, DRIVE)
     assert r["lag"] is None and r["records"] == 0 and "output encoder" in r["reason"]
+
+
+def test_the_report_lists_a_measured_lag_without_a_held_out_gain():
+    """A measured tachometer lag is a model_form item with no held-out gain (None); the report says
+    so instead of failing on it."""
+    from hdjax._workflows.diagnose import _report
+
+    item = {"assumption": "sensor_bandwidth", "gain": {"relative_reduction": None},
+            "adjustment": {"torque_lag": 0.0, "velocity_lag": 4.6e-4}, "adjustment_units": {"torque_lag": "s", "velocity_lag": "s"},
+            "evidence": "the velocity lag 0.4600 ± 0.0010 ms is measured, not fitted"}  # fmt: skip
+    text = _report({"dataset": "d", "findings": [], "model_form": [item], "unexplained": [], "evidence": {},
+                    "candidates_by_round": [], "figures": []})
+    assert "**sensor_bandwidth**: measured, not screened; adjustment torque_lag = 0 s, velocity_lag = 0.00046 s." in text
