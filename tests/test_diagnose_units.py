@@ -3,7 +3,7 @@
 import numpy as np
 
 from hdjax import Significance
-from hdjax._discrepancy.loop import _drift_share, _FoldFits, _judge, _refusal, _solve_normal, near_misses
+from hdjax._discrepancy.loop import FIXED_IN_FOLDS, _Column, _drift_share, _FoldFits, _judge, _refusal, _solve_normal, held_in_folds, near_misses
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -523,3 +523,17 @@ def test_a_diagnosis_that_names_nothing_points_to_what_the_data_could_not_test()
                              {"description": "kinematic_error, cogging not testable at orders 1–2", "evidence": "..."}])
     assert told["evidence"].endswith("or it is one these data cannot test (thermal_drift; kinematic_error, cogging at orders 1–2: "
                                      "see the entries above)")
+
+
+def test_held_in_folds_holds_a_whole_term_or_one_named_parameter_of_it():
+    # columns after 2 base parameters: the three sensor offsets, then the viscous law's exponent
+    cols = [_Column("sensor_offset", f, None, 1.0, 0.0) for f in ("torque_offset", "velocity_offset", "current_offset")]
+    cols.append(_Column("viscous_friction_law", "exponent", None, 1.0, 0.0))
+    cand_idx = {"sensor_offset": [2, 3, 4], "viscous_friction_law": [5]}
+    # the package's choice: the current offset alone of the three, the exponent whole
+    assert held_in_folds(["sensor_offset", "viscous_friction_law"], cand_idx, cols, 2) == {4, 5}
+    assert held_in_folds(["sensor_offset"], cand_idx, cols, 2) == {4}
+    assert "sensor_offset" not in FIXED_IN_FOLDS  # the torque and velocity offsets are refitted per fold
+    # a term named whole holds every column of it; nothing adopted, nothing held
+    assert held_in_folds(["sensor_offset"], cand_idx, cols, 2, held={"sensor_offset"}) == {2, 3, 4}
+    assert held_in_folds([], cand_idx, cols, 2) == set()
