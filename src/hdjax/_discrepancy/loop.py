@@ -1079,15 +1079,16 @@ DAMPED_SCREEN = frozenset({"viscous_friction_law"})
 #: judged against that (2026-11-29, thirty-fourth session). And the current's DC offset (the
 #: suspect, not measured fold by fold: in free motion a constant motor torque integrates into a
 #: ramp of velocity, so a small per-fold step moves a held-out record far). Re-fitted per fold, the
-#: offsets sent every held-out fit with fresh default-bench
-#: seed 5027's strain-gauge ripple [4] to 5–100× its whitened SSE (gain −6 300 %, nothing named);
-#: with the current offset held it is named alone (+37.5 % held out; 2026-12-04, forty-ninth
-#: session). Holding all three offsets named it too (+33 %), but the suite's small lost-motion
+#: offsets sent every held-out fit with fresh default-bench seed 5027's strain-gauge ripple [4] to
+#: 5–100× its whitened SSE (gain −6 300 %, nothing named); with the current offset held it is named
+#: alone (+37.5 % held out; 2026-12-04, forty-ninth session). Holding all three offsets named it too (+33 %), but the suite's small lost-motion
 #: dataset then named a false input_delay beside the lost motion (+14.2 % held out; forty-seventh
 #: session); with the current offset alone held, that dataset names the lost motion alone. The leak
 #: is a few bench-wide constants, adopted on held-out evidence before; candidates with and without
 #: are judged with the same values.
 FIXED_IN_FOLDS = frozenset({"viscous_friction_law", "low_speed_friction", "sensor_offset.current_offset"})
+
+
 def held_in_folds(adopted, cand_idx: dict, cols: list[_Column], n_base: int, held=FIXED_IN_FOLDS) -> set[int]:
     """The columns of the adopted model_form terms `adopted` (`cand_idx`: a term's columns, from
     `n_base` on into `cols`) that keep their all-records value in the held-out fold fits: every
@@ -1462,8 +1463,8 @@ class _GreedyRounds:
     def screen_stage(self, pool: list[str], n_simulated: int, simulate_all: bool = False) -> dict[str, dict]:
         loop, o, out = self.loop, self.opts, self.out
         ff = _FoldFits.at(loop, self.J, self.sel, o.fit_folds, two_stage=o.two_stage_periodic)
-        # an adopted shape adjustment (`FIXED_IN_FOLDS`) keeps its all-records value in every
-        # held-out fold fit
+        # an adopted adjustment held in the folds (`FIXED_IN_FOLDS`: a whole term or one parameter of
+        # it) keeps its all-records value in every held-out fold fit
         fixed = held_in_folds(out.adopted, self.cand_idx, loop.cols, loop.n_base)
         scores, raw_before, raw_after_of = _screen(loop, ff, pool, [j for j in self.accepted_idx() if j not in fixed],
                                                    self.cand_idx, o.folds, n_simulated=n_simulated, rule=o.rule,
