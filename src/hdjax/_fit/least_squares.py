@@ -399,6 +399,11 @@ def _lm_objective(residuals):
     with J @ t is the same arithmetic up to round-off, with 39 % less time per LM step and 25 %
     less compilation (measured, benchmarks/RESULTS.md)."""
 
+    @eqx.filter_jit
+    def residual_and_jacobian(theta, args):
+        J, r = jax.jacfwd(lambda t: (lambda r: (r, r))(residuals(t, args)), has_aux=True)(theta)
+        return r, J
+
     @jax.custom_jvp
     def objective(theta, args):
         return residuals(theta, args)
@@ -406,7 +411,7 @@ def _lm_objective(residuals):
     @objective.defjvp
     def _jvp(primals, tangents):
         (theta, args), (dtheta, _) = primals, tangents  # the data are never differentiated
-        J, r = jax.jacfwd(lambda t: (lambda r: (r, r))(residuals(t, args)), has_aux=True)(theta)
+        r, J = residual_and_jacobian(theta, args)
         return r, J @ dtheta
 
     return objective
