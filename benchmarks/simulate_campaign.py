@@ -4,7 +4,10 @@ vmapped and jitted (`eqx.filter_jit(hdjax.simulate_batch)`), with the default `S
 Prints one line per figure: compile time (first call minus a later call), run time (median of 3
 calls), solver steps per experiment, and the machine.
 
-Usage: `python benchmarks/simulate_campaign.py [--rtol RTOL] [--data FOLDER]`
+With `--substeps M` the plant is stepped by the fixed-step `hdjax.VelocityImplicit(substeps=M)`
+(the fit command's numerics since 2026-12-04) instead of the adaptive default.
+
+Usage: `python benchmarks/simulate_campaign.py [--rtol RTOL | --substeps M] [--data FOLDER]`
 """
 
 import argparse
@@ -42,6 +45,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rtol", type=float, default=hdjax.Simulator().rtol,
                         help="PID controller rtol (default: the Simulator default, %(default)g)")
+    parser.add_argument("--substeps", type=int, default=None,
+                        help="step with hdjax.VelocityImplicit at this many steps per sample instead (default: the adaptive Simulator)")
     parser.add_argument("--data", type=pathlib.Path, default=ROOT / "data" / "hd2", help="dataset folder")
     args = parser.parse_args()
 
@@ -56,7 +61,8 @@ def main() -> int:
     batch = hdjax.stack_experiments([ds.experiments[i] for i in idx])
     truth = (ds.truth or {}).get("parameters")
     p = hdjax.Parameters.from_dict(truth if truth else HD2_TABLE_I)
-    simulator = hdjax.Simulator(rtol=args.rtol)
+    simulator = (hdjax.Simulator(rtol=args.rtol) if args.substeps is None
+                 else hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=args.substeps)))
     sim = eqx.filter_jit(hdjax.simulate_batch)
 
     def run(batch):
@@ -73,8 +79,9 @@ def main() -> int:
     print(f"experiments:          {len(idx)} ({modes.count('constrained')} constrained, {modes.count('free')} free), "
           f"{int(n_samples.sum())} samples, padded to {batch.time.shape[1]}")
     print(f"parameters:           {'truth.yaml' if truth else 'Table I (HD2, per-degree reading)'}")
-    print(f"solver:               {type(simulator.solver).__name__}, "
-          f"PID rtol {simulator.rtol:g}, atol {simulator.atol:g}")
+    numerics = (f"{args.substeps} steps per sample" if args.substeps is not None
+                else f"PID rtol {simulator.rtol:g}, atol {simulator.atol:g}")
+    print(f"solver:               {type(simulator.solver).__name__}, {numerics}")
     print(f"all succeeded:        {bool(np.all(np.asarray(traj.success)))}")
     print(f"compile time:         {first - run_s:.2f} s (first call {first:.2f} s)")
     print(f"run time:             {run_s:.3f} s (median of 3: {', '.join(f'{r:.3f}' for r in runs)})")

@@ -183,15 +183,17 @@ def test_fit_cutoff_reaches_the_paper_identification_of_every_command(command, m
 
 
 def test_fit_trajectory_solver_option_builds_the_named_simulator():
-    """`fit.trajectory.solver` picks the trajectory fit's numerics: the adaptive Rosenbrock-W
-    default (`Ros34PW2` with the plant's stiff part), adaptive Rodas3, or the fixed-step implicit
-    velocity-level stepper with `substeps`; a bad value names its key."""
+    """`fit.trajectory.solver` picks the trajectory fit's numerics: the fixed-step implicit
+    velocity-level stepper with `substeps` (the default), adaptive Rosenbrock-W (`Ros34PW2` with
+    the plant's stiff part) or adaptive Rodas3 at `rtol`; a bad value names its key."""
     import hdjax
     from hdjax._workflows.fit import DEFAULTS, trajectory_simulator
 
     opts = dict(DEFAULTS["trajectory"])
-    assert opts["solver"] == "ros34pw2"
+    assert opts["solver"] == "velocity_implicit"
     sim = trajectory_simulator(opts)
+    assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.substeps == opts["substeps"]
+    sim = trajectory_simulator({**opts, "solver": "ros34pw2"})
     assert sim.rtol == opts["rtol"] and isinstance(sim.solver, hdjax.Ros34PW2)
     assert sim.solver.stiff_part is hdjax.plant_stiff_part
     sim = trajectory_simulator({**opts, "solver": "rodas3"})
@@ -203,23 +205,32 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
     with pytest.raises(ValueError, match=r"fit\.trajectory\.substeps"):
         trajectory_simulator({**opts, "solver": "velocity_implicit", "substeps": 0})
     with pytest.raises(ValueError, match=r"fit\.trajectory\.rtol.*\(0, 0\.1\]"):
-        trajectory_simulator({**opts, "rtol": 0.0})
+        trajectory_simulator({**opts, "solver": "ros34pw2", "rtol": 0.0})
 
 
 def test_per_experiment_fits_run_at_their_own_tolerance():
-    """The per-experiment fits use the joint fit's numerics at `fit.trajectory.per_experiment_rtol`
-    (a decade looser by default); a tolerance that is not a number in (0, 0.1] names its key."""
+    """The per-experiment fits use the joint fit's numerics, coarser: `per_experiment_substeps`
+    (half the joint fit's by default) with the fixed-step stepper, `per_experiment_rtol` (a decade
+    looser) with the adaptive ones; a value out of range names its key."""
+    import hdjax
     from hdjax._workflows.fit import DEFAULTS, per_experiment_simulator, trajectory_simulator
 
     opts = dict(DEFAULTS["trajectory"])
-    assert opts["per_experiment_rtol"] == 10 * opts["rtol"]
     sim, joint = per_experiment_simulator(opts), trajectory_simulator(opts)
+    assert isinstance(sim.solver, hdjax.VelocityImplicit) and isinstance(joint.solver, hdjax.VelocityImplicit)
+    assert 2 * sim.solver.substeps == joint.solver.substeps == opts["substeps"]
+    for bad in (0, 1.5, "2", True, None):
+        with pytest.raises(ValueError, match=r"fit\.trajectory\.per_experiment_substeps"):
+            per_experiment_simulator({**opts, "per_experiment_substeps": bad})
+    adaptive = {**opts, "solver": "ros34pw2"}
+    assert adaptive["per_experiment_rtol"] == 10 * adaptive["rtol"]
+    sim, joint = per_experiment_simulator(adaptive), trajectory_simulator(adaptive)
     assert sim.rtol == opts["per_experiment_rtol"] and sim.atol == opts["per_experiment_rtol"] * 1e-2
     assert type(sim.solver) is type(joint.solver) and joint.rtol == opts["rtol"]
-    assert per_experiment_simulator({**opts, "per_experiment_rtol": "3e-4"}).rtol == 3e-4  # YAML's reading of 3e-4
+    assert per_experiment_simulator({**adaptive, "per_experiment_rtol": "3e-4"}).rtol == 3e-4  # YAML's reading of 3e-4
     for bad in (-1e-4, 0.5, "fast", True, None):
         with pytest.raises(ValueError, match=r"fit\.trajectory\.per_experiment_rtol"):
-            per_experiment_simulator({**opts, "per_experiment_rtol": bad})
+            per_experiment_simulator({**adaptive, "per_experiment_rtol": bad})
 
 
 def test_read_target_turns_dataset_warnings_into_notes(tmp_path):

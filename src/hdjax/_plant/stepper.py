@@ -259,6 +259,20 @@ def _solve_step(P, s_guess, iterations):
     return s, out, stuck, converged
 
 
+def _tangent_dependence(*trees):
+    """Exactly zero whatever the values (inf and NaN included), with a forward-mode tangent that
+    depends on every inexact array of `trees`.
+
+    Added to the scan's initial state. The measured start state (q, ω_m, θ_o, ω_o) and the Dahl
+    state have no tangent, so JAX's scan JVP first traces the step with those carries' tangents
+    zero, finds them nonzero after one step and traces it again; likewise for the batching rule.
+    With this term every carry has a tangent (and a batch axis) from the start and the step is
+    traced once: a 9-tangent Jacobian of one shipped HD2 record traced in 1.2 s instead of 2.2 s
+    (`substeps=4`), the same arithmetic."""
+    total = sum((jnp.sum(x.astype(float)) for x in jax.tree.leaves(eqx.filter(trees, eqx.is_inexact_array))), jnp.zeros(()))
+    return jnp.where(jnp.zeros((), dtype=bool), total, 0.0)
+
+
 _GAMMA = 2.0 - 2.0**0.5  # TR-BDF2's stage point; makes both stages share one Jacobian scale
 _C1 = 1.0 / (_GAMMA * (2.0 - _GAMMA))  # BDF2 stage: y1 = C1·y_γ − C0·y0 + C2·h·f(y1)
 _C0 = (1.0 - _GAMMA) ** 2 / (_GAMMA * (2.0 - _GAMMA))
@@ -370,13 +384,11 @@ def implicit_trajectory(
         return out, conv_g & conv_1
 
     def sample_interval(state, t0):
-        def body(c, k):
-            st, ok = c
-            st, conv = step(st, t0 + k * h)
-            return (st, ok & conv), None
+        def body(st, k):
+            return step(st, t0 + k * h)
 
-        (state, ok), _ = jax.lax.scan(body, (state, jnp.array(True)), jnp.arange(m, dtype=float))
-        return state, (state, ok)
+        state, conv = jax.lax.scan(body, state, jnp.arange(m, dtype=float))
+        return state, (state, jnp.all(conv))
 
     q0, wm0, tho0, wo0 = y0[:4]
     z0 = jnp.zeros_like(q0)
@@ -394,6 +406,8 @@ def implicit_trajectory(
                   jnp.clip(hold, _branch_friction(0.0 * wm0, -1.0, P0), _branch_friction(0.0 * wm0, 1.0, P0))),
     )
     state0 = (q0, wm0, tho0, wo0, z0, s0, T0, F0)
+    zero = _tangent_dependence(p, effects)
+    state0 = tuple(jnp.asarray(x, dtype=float) + zero for x in state0)
     n = exp.time.shape[0]
     t_starts = exp.time[0] + dt * jnp.arange(n - 1, dtype=float)
     _, (states, oks) = jax.lax.scan(sample_interval, state0, t_starts)
