@@ -136,7 +136,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     p0 = paper.parameters()
     free_names, undetermined = _free_and_undetermined(opts, modes, paper)
 
-    log("[2/4] joint trajectory-error fit (optimistix Levenberg–Marquardt through the diffrax plant)")
+    log("[2/4] joint trajectory-error fit (optimistix Levenberg–Marquardt through the simulated plant)")
     sim_fit = trajectory_simulator(opts["trajectory"])
     full = stack_experiments(exps)  # once: the joint fit takes its subset from it
     res, sel_pos, t_traj = _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log)
@@ -365,7 +365,7 @@ def _fmt(v):
 def _report(r: dict, truth) -> str:
     lines = [f"# Identification of `{r['dataset']}`", ""]
     lines.append("Two methods: the paper's regressions (section III, per experiment, with its consistency measure) and "
-                 "the joint trajectory-error fit (Levenberg–Marquardt through the diffrax plant, standard errors from "
+                 "the joint trajectory-error fit (Levenberg–Marquardt through the simulated plant, standard errors from "
                  + ("a block sandwich covariance that allows a misfit correlated in time)."
                     if r["fit"].get("std_error_method") == "block_sandwich" else "the Gauss–Newton covariance)."))
     lines += ["", "## Table I", ""]
