@@ -14,7 +14,7 @@ The exact model (set-valued sticking, |rate|^α) is the limit of the smoothed mo
 solves; the last column gives the RMS difference to Rodas3 (smoothing 1e-3 / 1e-5), which is
 physics (creep while stuck), not solver error.
 
-Usage: `python benchmarks/stepper.py [--records 12] [--substeps 1,2,4,8]`
+Usage: `python benchmarks/stepper.py [--records 12] [--substeps 1,2,4,8] [--no-corrector]`
 """
 
 import argparse
@@ -48,7 +48,7 @@ def _timed(f, *a, repeat=3):
     return min(ts), out
 
 
-def run(name, ds, n_records, substeps):
+def run(name, ds, n_records, substeps, corrector=True):
     idx = ds.dynamic_indices()
     locked = [i for i in idx if ds.modes[i] == "constrained"][: n_records // 2]
     free = [i for i in idx if ds.modes[i] == "free"][: n_records - len(locked)]
@@ -82,14 +82,14 @@ def run(name, ds, n_records, substeps):
     print(f"\n{name}: {len(locked)} locked + {len(free)} free records, {int(mask.sum())} samples")
     print(f"{'solver':>22} {'RMS T/σ':>8} {'RMS ω/σ':>8} {'max T/σ':>8} {'max ω/σ':>8} {'sim s':>7} {'jac s':>7} {'RMS T/σ vs Rodas3':>18}")
     for m in substeps:
-        s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=m))
+        s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=m, corrector=corrector))
         t_sim, tr = _timed(lambda: sim(p, ds.drive, batch, simulator=s))
         t_jac, _ = _timed(jac(s), v0)
         rT, mT = rms(tr.torque, ref.torque, sT)
         rw, mw = rms(tr.motor_velocity, ref.motor_velocity, sw)
         rR, _ = rms(tr.torque, tr_rodas.torque, sT)
         ok = "" if bool(jnp.all(tr.success)) else " (some root not converged)"
-        print(f"{'VelocityImplicit m=' + str(m):>22} {rT.max():8.3f} {rw.max():8.3f} {mT.max():8.2f} {mw.max():8.2f} "
+        print(f"{'VelocityImplicit m=' + str(m) + ('' if corrector else ' np'):>22} {rT.max():8.3f} {rw.max():8.3f} {mT.max():8.2f} {mw.max():8.2f} "
               f"{t_sim:7.3f} {t_jac:7.2f} {rR.max():18.3f}{ok}")
     rT, mT = rms(tr_rodas.torque, ref.torque, sT)
     rw, mw = rms(tr_rodas.motor_velocity, ref.motor_velocity, sw)
@@ -101,12 +101,16 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--records", type=int, default=12)
     ap.add_argument("--substeps", default="1,2,4,8")
+    ap.add_argument("--no-corrector", action="store_true",
+                    help="the rows without the predictor-corrector pass (`VelocityImplicit(corrector=False)`, 'np'); "
+                         "the reference keeps it")
     args = ap.parse_args()
     substeps = [int(x) for x in args.substeps.split(",")]
-    run("shipped data/hd2 (truth parameters)", load_dataset(ROOT / "data" / "hd2"), args.records, substeps)
+    corrector = not args.no_corrector
+    run("shipped data/hd2 (truth parameters)", load_dataset(ROOT / "data" / "hd2"), args.records, substeps, corrector)
     with tempfile.TemporaryDirectory() as tmp:
         make_dataset(tmp, drive="hd2", seed=9001, n_locked=args.records // 2, n_free=args.records - args.records // 2)
-        run("independent bench, HD2-like, seed 9001 (its true parameters)", load_dataset(tmp), args.records, substeps)
+        run("independent bench, HD2-like, seed 9001 (its true parameters)", load_dataset(tmp), args.records, substeps, corrector)
     print(f"\nmachine: {jax.devices()[0].platform}, {jax.local_device_count()} device(s)")
     return 0
 

@@ -117,3 +117,22 @@ def test_presliding_friction_is_refused_by_the_stepper():
     eff = hdjax.Effects().with_values("presliding_friction", presliding=0.5)
     with pytest.raises(ValueError, match="presliding_friction.*Rodas3"):
         hdjax.simulate(p, drive, exp, effects=eff, simulator=hdjax.Simulator(solver=hdjax.VelocityImplicit()))
+
+
+def test_tangent_dependence_is_an_exact_zero_with_a_tangent():
+    """The term added to the scan's start state (so that JAX traces the step once under `jvp` and
+    `vmap`) is exactly zero, whatever the values (inf and NaN included), and its derivative is zero;
+    the trajectory's Jacobian is traced with one scan JVP pass less (checked as the same values:
+    the 9-tangent Jacobian of a short record equals central differences, `test_derivatives_*`)."""
+    from hdjax._plant.stepper import _tangent_dependence
+
+    p, _ = hd2()
+    for bad in (jnp.inf, -jnp.inf, jnp.nan):
+        z = _tangent_dependence(p.replace(K1=bad), {"a": jnp.array([1.0, bad])})
+        assert z.dtype == jnp.float64 and float(z) == 0.0 and not np.signbit(float(z))
+    value, tangent = jax.jvp(lambda k: _tangent_dependence(p.replace(K1=k)), (p.K1,), (jnp.ones_like(p.K1),))
+    assert float(value) == 0.0 and float(tangent) == 0.0
+    # a tangent that is not JAX's symbolic zero: jvp of the term alone gives an array, and the
+    # scan's JVP sees the start state's tangents as nonzero from the first pass
+    jaxpr = jax.make_jaxpr(lambda k: jax.jvp(lambda k_: _tangent_dependence(p.replace(K1=k_)), (k,), (k,))[1])(p.K1)
+    assert any(eqn.primitive.name in ("select_n", "mul", "add", "reduce_sum") for eqn in jaxpr.jaxpr.eqns)
