@@ -136,3 +136,23 @@ def test_tangent_dependence_is_an_exact_zero_with_a_tangent():
     # scan's JVP sees the start state's tangents as nonzero from the first pass
     jaxpr = jax.make_jaxpr(lambda k: jax.jvp(lambda k_: _tangent_dependence(p.replace(K1=k_)), (k,), (k,))[1])(p.K1)
     assert any(eqn.primitive.name in ("select_n", "mul", "add", "reduce_sum") for eqn in jaxpr.jaxpr.eqns)
+
+
+def test_corrector_pass_runs_only_where_a_term_reads_the_predicted_state():
+    """With the paper's model and both Stribeck amplitudes ≤ 0 (HD1, HD2) nothing in a stage reads
+    the predicted state, so the corrector's second pass is skipped: the same trajectory as
+    `corrector=False` (to round-off). With a steep falling Stribeck term (an amplitude > 0, taken at
+    the predicted speed at this step) it runs and changes the trajectory."""
+    p, drive = hd2()
+    assert float(p.Tssp1) <= 0 and float(p.Tssn1) <= 0
+    exp = sine_experiment("free", amplitude=1.5, duration=0.4)
+
+    def run(q, corrector):
+        sim = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=1, corrector=corrector))
+        tr = hdjax.simulate(q, drive, exp, simulator=sim)
+        assert bool(tr.success) and float(jnp.abs(tr.motor_velocity).max()) > 1.0  # it slides, both ways
+        return np.asarray(tr.motor_velocity)
+
+    np.testing.assert_allclose(run(p, True), run(p, False), rtol=0, atol=1e-9 * np.abs(run(p, False)).max())
+    steep = p.replace(Tssp1=jnp.asarray(0.05), Tssn1=jnp.asarray(0.05), Tss2=jnp.asarray(0.01))
+    assert np.abs(run(steep, True) - run(steep, False)).max() > 1e-3 * np.abs(run(steep, False)).max()
