@@ -15,7 +15,8 @@ manner of Moreau–Jean time stepping and Drake's discrete friction solvers:
   across zero velocity as the trapezoidal rule alone does.
 - **position- and load-dependent terms** (cogging, kinematic error, position- and load-dependent
   friction) are explicit: evaluated at a stage end predicted at constant speed, then once more at
-  the first pass's stage end (a predictor–corrector, `corrector=True`).
+  the first pass's stage end (a predictor–corrector, `corrector=True`; the second pass is skipped
+  where no term reads the predicted state, see `VelocityImplicit`).
 
 **The implicit equation of one step is one scalar, monotone equation.** The unknown is
 $s = |\dot{\Delta\theta}_{n+1}|^\alpha\,\mathrm{sign}(\dot{\Delta\theta}_{n+1})$, the damping
