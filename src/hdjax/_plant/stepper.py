@@ -327,9 +327,11 @@ def implicit_trajectory(
             return eff.thermal_drift.factor(exp.start_time + t)
         return 1.0
 
-    # the effects whose explicit terms read the state predicted at the stage end (`stage_parameters`)
+    # the effects whose explicit terms read the state predicted at the stage end (`stage_parameters`);
+    # without them only a falling Stribeck term too steep to be implicit does, which needs an amplitude > 0
     explicit_state_terms = bool(
         {"cogging", "kinematic_error", "position_dependent_friction", "load_dependent_friction"} & set(eff.active))
+    stribeck_may_lag = (p.Tssp1 > 0) | (p.Tssn1 > 0)
 
     def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0):
         """The stage equation's data: `hist` = (A, ω_m, q, ω_o history, bh, fh/J); the explicit
@@ -381,8 +383,7 @@ def implicit_trajectory(
             # same equation again: skipped. The predicate depends on the parameters alone, so under
             # the experiment `vmap` it stays a branch. (`P`'s drive, A and histories, used below, do
             # not depend on the prediction.)
-            may_lag = (p.Tssp1 > 0) | (p.Tssn1 > 0)
-            s, out, stuck, conv = jax.lax.cond(may_lag, lambda f: corrected(f)[0], lambda f: f, first)
+            s, out, stuck, conv = jax.lax.cond(stribeck_may_lag, lambda f: corrected(f)[0], lambda f: f, first)
         r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
         wm1 = jnp.where(stuck, 0.0, wm1)
         tho1 = tho_hist + hist[4] * wo1

@@ -55,8 +55,9 @@ def trajectory_simulator(trajectory: dict) -> Simulator:
     second derivatives of the current and the smooth factors).
 
     Why the fixed-step stepper is the default (2026-12-04, shipped HD2 command, 2-core machine,
-    reading the compilation cache): 22.4 s inside against 34 s with "ros34pw2"; the joint fit's
-    program runs in 2.9 s at 4 substeps against 8.5 s. Against the same fit at 16 substeps its
+    reading the compilation cache): 19.1–19.4 s inside against 26.2 s with "ros34pw2" on the same
+    code (34 s before that day's trace changes); the joint fit's program ran in 2.9 s at 4
+    substeps against 8.5 s. Against the same fit at 16 substeps its
     estimates lie within 0.54 standard errors (the Stribeck amplitudes; K1 … Tsn within 0.16),
     the "ros34pw2" ones (the smoothed model) within 0.66 (K1 … Tsn within 0.11);
     at 4 substeps the simulation's RMS error is 0.003 σ in torque and 0.075 σ in velocity
