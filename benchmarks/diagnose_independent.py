@@ -12,7 +12,7 @@ the time per dataset.
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
 [--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]
 [--low-speed lugre] [--noise per_record] [--viscous-exponent 0.7] [--no-physical-sign] [--consistency-any-mode]
-[--negligible-record-loss 0]`.
+[--negligible-record-loss 0] [--angle simulated|measured] [--substeps 4]`.
 
 `--low-speed lugre` and `--noise per_record` draw the datasets from a variant of the bench (a LuGre
 low-speed law with a stiction bump instead of exact stick–slip; sensor noise scaled with each
@@ -45,6 +45,7 @@ import numpy as np  # noqa: E402
 from hdjax import (  # noqa: E402
     PLANT_W_METHOD,
     Simulator,
+    VelocityImplicit,
     diagnose_effects as diagnose,
     identify_paper,
     load_dataset,
@@ -151,9 +152,14 @@ def main() -> int:
     ap.add_argument("--angle", default=None, choices=("simulated", "measured"),
                     help="the wave-generator angle of the periodic terms: the simulated one, or the measured one "
                          "(`Simulator.measured_angle`; default: the package's)")
+    ap.add_argument("--substeps", type=int, default=None,
+                    help="simulate on the fixed-step `VelocityImplicit` plant with this many steps per sample "
+                         "(default: the package's diagnosis solver)")
     args = ap.parse_args()
-    simulator_option = {} if args.angle is None else {
-        "simulator": Simulator(rtol=1e-6, atol=1e-8, measured_angle=args.angle == "measured")}
+    simulator_option = {}
+    if args.angle is not None or args.substeps is not None:
+        solver = {} if args.substeps is None else {"solver": VelocityImplicit(substeps=args.substeps)}
+        simulator_option = {"simulator": Simulator(rtol=1e-6, atol=1e-8, measured_angle=args.angle != "simulated", **solver)}
     rule_options = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"
@@ -186,7 +192,7 @@ def main() -> int:
                "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
                "bench": {"low_speed": args.low_speed, "noise": args.noise, "viscous_exponent": args.viscous_exponent},
                "physical_sign": not args.no_physical_sign,
-               "consistency_in": consistency_in, **rule_options, "angle": args.angle or "default",
+               "consistency_in": consistency_in, **rule_options, "angle": args.angle or "default", "substeps": args.substeps,
                "stages_s": {"paper_identification": round(t_paper, 1), **{k: round(v, 1) for k, v in d.timing.items()}}}
         rows.append(row)
         print(json.dumps(row), flush=True)

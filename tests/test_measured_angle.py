@@ -91,12 +91,15 @@ def test_the_motor_encoder_is_used_where_the_record_has_one():
     np.testing.assert_allclose(tr.motor_position, exp.motor_position, rtol=0, atol=1e-12)
 
 
-def test_derivatives_through_the_measured_angle_match_finite_differences():
+@pytest.mark.parametrize("solver", ["rodas3", "velocity_implicit"])
+def test_derivatives_through_the_measured_angle_match_finite_differences(solver):
     """Forward-mode AD of a simulation with cogging at the measured angle, against central
-    differences (fixed steps, so the discrete solution is smooth in the parameters)."""
+    differences (fixed steps, so the discrete solution is smooth in the parameters): fixed-step
+    Rodas3, and the implicit stepper (`VelocityImplicit`, derivatives by the implicit function theorem)."""
     p, drive, exp, _ = _record(motor_position=False)
     exp = jax.tree.map(lambda x: x[:300] if getattr(x, "ndim", 0) == 1 else x, exp)
-    sim = hdjax.Simulator(fixed_step=2.5e-4, measured_angle=True)
+    sim = (hdjax.Simulator(fixed_step=2.5e-4, measured_angle=True) if solver == "rodas3"
+           else hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=2), measured_angle=True))
 
     eff0 = hdjax.Effects().with_periodic("cogging", 4, 0.01, 0.3)
 
@@ -119,9 +122,3 @@ def test_derivatives_through_the_measured_angle_match_finite_differences():
         assert bool(jnp.all(jnp.isfinite(J[:, j])))
         rel = float(jnp.max(jnp.abs(J[:, j] - fd)) / jnp.max(jnp.abs(fd)))
         assert rel < 1e-5, (j, rel)
-
-
-def test_the_fixed_step_stepper_refuses_the_measured_angle():
-    p, drive, exp, _ = _record(motor_position=False)
-    with pytest.raises(ValueError, match="measured_angle"):
-        hdjax.simulate(p, drive, exp, simulator=hdjax.Simulator(solver=hdjax.VelocityImplicit(), measured_angle=True))

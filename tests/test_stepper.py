@@ -5,6 +5,7 @@ differences), vmap against one-at-a-time.
 No inverse crime here: these tests check the numerics of one model against itself and against the
 smoothed-model Rodas3 solve, not an identification."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -156,3 +157,57 @@ def test_corrector_pass_runs_only_where_a_term_reads_the_predicted_state():
     np.testing.assert_allclose(run(p, True), run(p, False), rtol=0, atol=1e-9 * np.abs(run(p, False)).max())
     steep = p.replace(Tssp1=jnp.asarray(0.05), Tssn1=jnp.asarray(0.05), Tss2=jnp.asarray(0.01))
     assert np.abs(run(steep, True) - run(steep, False)).max() > 1e-3 * np.abs(run(steep, False)).max()
+
+
+def _with_angles(exp, tr):
+    """`exp` with the simulated motor and output angles of `tr` written in as its measured ones."""
+    return hdjax.make_experiment(np.asarray(exp.time), np.asarray(exp.current), np.asarray(tr.torque),
+                                 np.asarray(tr.motor_velocity), mode="free" if float(exp.free) > 0 else "constrained",
+                                 output_position=np.asarray(tr.output_position), motor_position=np.asarray(tr.motor_position))
+
+
+@pytest.mark.parametrize("mode,amp", [("constrained", 1.0), ("free", 0.3)])
+def test_measured_angle_reproduces_the_simulated_one_and_converges(mode, amp):
+    """`Simulator.measured_angle` on the stepper (as the diagnosis simulates): the periodic terms act
+    at the record's angle, interpolated between samples. Written into the record from a fine
+    simulation (64 substeps, the plant's own angle), that angle must give back the same trajectory
+    with cogging, kinematic error and position-dependent friction on, to within 0.1 noise σ at 4
+    substeps and closer as the step shrinks (the remaining difference is the angle's straight line
+    between 1 ms samples). A shifted angle moves the terms' phase: the result must then differ."""
+    p, drive = hd2()
+    eff = (hdjax.Effects().with_periodic("cogging", 4, 0.03, 0.3).with_periodic("kinematic_error", 2, 2e-4, 0.1)
+           .with_periodic("position_dependent_friction", 1, 0.2, 0.5))
+    exp = sine_experiment(mode, amplitude=amp, freq=2.0, duration=0.6)
+    ref = _sim(p, drive, exp, 64, effects=eff)
+    rec = _with_angles(exp, ref)
+
+    def sim(m, record):
+        s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=m), measured_angle=True)
+        tr = hdjax.simulate(p, drive, record, effects=eff, simulator=s)
+        assert bool(tr.success)
+        return tr
+
+    errs = [max(_errors(sim(m, rec), ref)) for m in (2, 8, 32)]
+    assert errs[0] < 0.1 and errs[2] < errs[0], errs
+    np.testing.assert_array_equal(np.asarray(sim(4, rec).motor_position), np.asarray(rec.motor_position))
+    shifted = _with_angles(exp, eqx.tree_at(lambda t: t.motor_position, ref, ref.motor_position + np.pi / 4))
+    assert max(_errors(sim(4, shifted), ref)) > 1.0
+
+
+def test_viscous_friction_law_matches_the_smoothed_plant_and_converges():
+    """`viscous_friction_law` (a model_form item of the diagnosis) in the stepper: the change it makes
+    to the trajectory agrees with the adaptive Rodas3 plant's (which differs from the stepper only in
+    the smoothed sticking) to within 5 % of that change, and the stepper's own error falls with the step."""
+    p, drive = hd2()
+    eff = hdjax.Effects().with_values("viscous_friction_law", viscous_exponent=float(np.log(0.6)), viscous_reference=10.0)
+    exp = sine_experiment("free", amplitude=0.6, freq=2.0, duration=0.6)
+    tight = hdjax.Simulator(rtol=1e-10, atol=1e-12, max_steps=400_000)
+    d_ref = [np.asarray(getattr(hdjax.simulate(p, drive, exp, effects=eff, simulator=tight), c))
+             - np.asarray(getattr(hdjax.simulate(p, drive, exp, simulator=tight), c)) for c in ("torque", "motor_velocity")]
+    fine = _sim(p, drive, exp, 64, effects=eff)
+    d_vi = [np.asarray(getattr(fine, c)) - np.asarray(getattr(_sim(p, drive, exp, 64), c)) for c in ("torque", "motor_velocity")]
+    for a, b in zip(d_vi, d_ref):
+        assert np.sqrt(np.mean(b**2)) > 0.5 * SIGMA_W  # the law changes the trajectory
+        assert np.sqrt(np.mean((a - b) ** 2)) < 0.05 * np.sqrt(np.mean(b**2))
+    errs = [max(_errors(_sim(p, drive, exp, m, effects=eff), fine)) for m in (1, 4, 16)]
+    assert errs[0] > errs[1] > errs[2] and errs[1] < 0.1, errs

@@ -512,9 +512,6 @@ def simulate(
     fits and diagnoses are unchanged to the bit (a nested `jit` there moved their figures by
     round-off).
     """
-    if isinstance(simulator.solver, VelocityImplicit) and simulator.measured_angle:
-        raise ValueError("`simulate`: `VelocityImplicit` takes the wave-generator angle from its own state; use "
-                         "`Simulator(measured_angle=False)` with it, or the default solver (`Rodas3`).")
     if isinstance(simulator.solver, VelocityImplicit) and "presliding_friction" in effects.active:
         raise ValueError("`simulate`: `VelocityImplicit` does not model `presliding_friction` (its exact sticking is "
                          "that law's δ → 0 limit); use the default solver (`Rodas3`) or `PLANT_W_METHOD` for it.")
@@ -551,8 +548,6 @@ def _simulate_one(p: Parameters, drive: Drive, exp: Experiment, effects: Effects
         current = UniformCubicBlendInput(exp.time[0], dt, true_current, jnp.asarray(effects.input_between_samples.reconstruction))
     else:
         current = UniformLinearInput(exp.time[0], dt, true_current)
-    if isinstance(simulator.solver, VelocityImplicit):
-        return _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator)
     measured = None
     if simulator.measured_angle:
         measured = MeasuredAngle(
@@ -560,6 +555,8 @@ def _simulate_one(p: Parameters, drive: Drive, exp: Experiment, effects: Effects
             motor=UniformLinearInput(exp.time[0], dt, exp.motor_position),
             use_output=exp.free * exp.has_output_position, use_motor=exp.has_motor_position,
         )
+    if isinstance(simulator.solver, VelocityImplicit):
+        return _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator, measured)
     # the reported angle is the measured one; the vector field reads it only where a term acts at it
     geometry = (y0[0], y0[2], th_m0, measured)
     geometry_ode = geometry if effects.active & set(PERIODIC) else geometry[:3] + (None,)
@@ -611,9 +608,12 @@ def _simulate_one(p: Parameters, drive: Drive, exp: Experiment, effects: Effects
     )
 
 
-def _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator):
-    """`simulate` with the fixed-step implicit velocity-level stepper (`hdjax._plant.stepper`)."""
-    geometry = (y0[0], y0[2], th_m0)
+def _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator, measured):
+    """`simulate` with the fixed-step implicit velocity-level stepper (`hdjax._plant.stepper`);
+    `measured` the record's angles (`Simulator.measured_angle`) or None."""
+    # the stepper reads the measured angle only where a periodic term acts at it (as the adaptive
+    # plant's vector field); the reported angle is the measured one either way
+    geometry = (y0[0], y0[2], th_m0, measured)
     # exact set-valued Coulomb friction (vc = 0), unless `low_speed_friction` fits a ramp width
     p_dyn, smoothing_dyn = _low_speed_friction(p, effects, simulator.smoothing)
     vc = smoothing_dyn.velocity_scale if "low_speed_friction" in effects.active else 0.0

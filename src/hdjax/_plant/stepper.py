@@ -60,7 +60,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._model.effects import Effects, stiffness_torque
+from .._model.effects import PERIODIC, Effects, stiffness_torque
 
 
 class VelocityImplicit(eqx.Module):
@@ -153,7 +153,11 @@ def _branch_friction(w, sign, P):
     # clamped at zero there (friction never drives the motor)
     mag = Tc + coef * g
     mag = jnp.where(vc > 0, jnp.maximum(mag, 0.0), mag)
-    return P["visc"] * Tv * w + sign * ramp * mag
+    viscous = P["visc"] * Tv * w
+    if "viscous_friction_law" in P["eff"].active:
+        # Tv·ω·((ω² + ε²)/ωr²)^((κ−1)/2) increases with ω for every κ > 0: G stays monotone
+        viscous = viscous * P["eff"].viscous_friction_law.factor(w)
+    return viscous + sign * ramp * mag
 
 
 def _G_nofriction(s, P):
@@ -306,15 +310,29 @@ def implicit_trajectory(
     N = drive.gear_ratio
     m = solver.substeps
     h = dt / m
-    q_g, tho_g, thm_g = geometry
+    q_g, tho_g, thm_g, measured_out = geometry
+    # the steps read the measured angle only where a periodic term acts at it; the reported angle is
+    # the measured one either way (as the adaptive plant's vector field and outputs)
+    measured = measured_out if set(effects.active) & set(PERIODIC) else None
     f = exp.free
     eff = effects
     Km = drive.torque_constant
     delay = effects.input_delay.delay if "input_delay" in effects.active else 0.0
     ke = "kinematic_error" in effects.active
 
-    def theta_m(q, tho):
-        return thm_g + N * ((q - q_g) + (tho - tho_g))
+    def theta_m(q, tho, t, angles=measured):
+        """θm (rad) at time t (s): the plant's own angle, or the record's where `angles` (a
+        `MeasuredAngle`, `Simulator.measured_angle`) holds it, as in the adaptive plant."""
+        if angles is None:
+            return thm_g + N * ((q - q_g) + (tho - tho_g))
+        thm = thm_g + N * ((q - q_g) + (angles.output_angle(t, tho) - tho_g))
+        return angles.motor_angle(t, thm)
+
+    def predicted_angle(t1, tau, q0, tho0, wo0, thm0, wm0):
+        """θm at the stage end t1 = t0 + tau, predicted at constant speed (or read from the record)."""
+        if measured is None:
+            return thm0 + tau * wm0
+        return theta_m(q0, tho0 + tau * wo0, t1)
 
     def torsion_of(q, thm):
         return q + (eff.periodic("kinematic_error", thm) if ke else 0.0)
@@ -356,18 +374,18 @@ def implicit_trajectory(
         P["eff"] = eff
         return P
 
-    def stage(t1, hist, tho_hist, tau, start, s_guess):
+    def stage(t1, hist, tho_hist, thm_pred, start, s_guess):
         """Solve one stage ending at t1; `start` = (θ_m, ω_m, T, torsion, z) at the step start, from
-        which the explicit terms are predicted over `tau` seconds."""
+        which the explicit terms are predicted (θ_m at the stage end: `thm_pred`)."""
         thm0, wm0, T0, tor0, z0 = start
-        P = stage_parameters(t1, hist, thm0 + tau * wm0, wm0, T0, tor0, z0)
+        P = stage_parameters(t1, hist, thm_pred, wm0, T0, tor0, z0)
         first = _solve_step(P, s_guess, solver.iterations)
 
         def corrected(first):
             """The stage again, its explicit terms at the first pass's stage end."""
             s, out, stuck, conv = first
             r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
-            thm1 = theta_m(q1, tho_hist + hist[4] * wo1)
+            thm1 = theta_m(q1, tho_hist + hist[4] * wo1, t1)
             P1 = stage_parameters(t1, hist, thm1, wm1, 0.5 * (T0 + T1), tor0, z0)
             s, out, stuck, conv2 = _solve_step(P1, s, solver.iterations)
             return (s, out, stuck, conv & conv2), P1
@@ -393,7 +411,7 @@ def implicit_trajectory(
     def step(state, t0):
         """One TR-BDF2 step from t0 to t0 + h: a trapezoidal stage to t0 + γh, then BDF2 to t0 + h."""
         q0, wm0, tho0, wo0, z0, s0, T0, F0 = state
-        thm0 = theta_m(q0, tho0)
+        thm0 = theta_m(q0, tho0, t0)
         tor0 = torsion_of(q0, thm0)
         drive0 = electric(t0) + eff.periodic("cogging", thm0)
         # trapezoidal stage: the start's forces enter through the histories
@@ -401,13 +419,15 @@ def implicit_trajectory(
         A = p.Jeff / bh
         hist = (A, wm0 + (drive0 - T0 / N - F0) / A, q0 + bh * (wm0 / N - wo0), wo0 + bh * f * T0 / drive.load_inertia,
                 bh, bh * f / drive.load_inertia)
-        stage_g, tor_g, conv_g = stage(t0 + _GAMMA * h, hist, tho0 + bh * wo0, _GAMMA * h, (thm0, wm0, T0, tor0, z0), s0)
+        thm_pred = predicted_angle(t0 + _GAMMA * h, _GAMMA * h, q0, tho0, wo0, thm0, wm0)
+        stage_g, tor_g, conv_g = stage(t0 + _GAMMA * h, hist, tho0 + bh * wo0, thm_pred, (thm0, wm0, T0, tor0, z0), s0)
         qg, wmg, thog, wog, zg, s_g, Tg, _ = stage_g
         # BDF2 stage on (t0, t0 + γh, t0 + h)
         bh = _C2 * h
         hist = (p.Jeff / bh, _C1 * wmg - _C0 * wm0, _C1 * qg - _C0 * q0, _C1 * wog - _C0 * wo0, bh, bh * f / drive.load_inertia)
-        thmg = theta_m(qg, thog)
-        out, _, conv_1 = stage(t0 + h, hist, _C1 * thog - _C0 * tho0, (1.0 - _GAMMA) * h, (thmg, wmg, Tg, tor_g, zg), s_g)
+        thmg = theta_m(qg, thog, t0 + _GAMMA * h)
+        thm_pred = predicted_angle(t0 + h, (1.0 - _GAMMA) * h, qg, thog, wog, thmg, wmg)
+        out, _, conv_1 = stage(t0 + h, hist, _C1 * thog - _C0 * tho0, thm_pred, (thmg, wmg, Tg, tor_g, zg), s_g)
         return out, conv_g & conv_1
 
     def sample_interval(state, t0):
@@ -419,7 +439,7 @@ def implicit_trajectory(
 
     q0, wm0, tho0, wo0 = y0[:4]
     z0 = jnp.zeros_like(q0)
-    thm0 = theta_m(q0, tho0)
+    thm0 = theta_m(q0, tho0, exp.time[0])
     rate0 = wm0 / N - wo0 + (eff.periodic_rate("kinematic_error", thm0, wm0) if ke else 0.0)
     s0 = _signed_pow(rate0, p.alpha)
     T0 = stiffness_torque(p.K1, torsion_of(q0, thm0), eff) + p.Tst * s0
@@ -440,6 +460,6 @@ def implicit_trajectory(
     _, (states, oks) = jax.lax.scan(sample_interval, state0, t_starts)
     states = jax.tree.map(lambda a, b: jnp.concatenate([jnp.asarray(a)[None], b]), state0, states)
     q, wm, tho, wo, z, s, T, _ = states
-    thm = theta_m(q, tho)
+    thm = theta_m(q, tho, exp.time, measured_out)
     oks = jnp.concatenate([jnp.array([True]), oks])
     return (q, wm, tho, wo, T, torsion_of(q, thm), thm), oks, (n - 1) * m
