@@ -1,5 +1,6 @@
 """Commands refuse bad input with a clear message and a non-zero exit status."""
 
+import inspect
 import subprocess
 import sys
 
@@ -206,6 +207,28 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
         trajectory_simulator({**opts, "solver": "velocity_implicit", "substeps": 0})
     with pytest.raises(ValueError, match=r"fit\.trajectory\.rtol.*\(0, 0\.1\]"):
         trajectory_simulator({**opts, "solver": "ros34pw2", "rtol": 0.0})
+
+
+def test_diagnose_solver_option_builds_the_named_simulator():
+    """`diagnose.solver` picks the diagnosis's numerics: the fixed-step stepper at `substeps` (the
+    default, as the library's `diagnose`) or adaptive Rodas3 at `rtol`, both with the periodic terms
+    at the measured angle unless `measured_angle` is off; a bad value names its key."""
+    import hdjax
+    from hdjax._discrepancy.loop import diagnose
+    from hdjax._workflows.diagnose import DEFAULTS, diagnosis_simulator
+
+    opts = dict(DEFAULTS)
+    sim = diagnosis_simulator(opts)
+    assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.substeps == opts["substeps"] == 4
+    assert sim.measured_angle and sim == inspect.signature(diagnose).parameters["simulator"].default
+    sim = diagnosis_simulator({**opts, "solver": "rodas3", "rtol": "1e-5", "measured_angle": False})
+    assert isinstance(sim.solver, hdjax.Rodas3) and sim.rtol == 1e-5 and not sim.measured_angle
+    with pytest.raises(ValueError, match=r"diagnose\.solver.*velocity_implicit"):
+        diagnosis_simulator({**opts, "solver": "ros34pw2"})
+    with pytest.raises(ValueError, match=r"diagnose\.substeps"):
+        diagnosis_simulator({**opts, "substeps": 0})
+    with pytest.raises(ValueError, match=r"diagnose\.rtol"):
+        diagnosis_simulator({**opts, "solver": "rodas3", "rtol": 2.0})
 
 
 def test_per_experiment_fits_run_at_their_own_tolerance():

@@ -9,7 +9,7 @@ Whether the loop names hidden effects is judged on data the package did not make
 
 import numpy as np
 
-from hdjax import Effects, diagnose_effects as diagnose, identify_paper
+from hdjax import Effects, Simulator, diagnose_effects as diagnose, identify_paper
 from hdjax.rig import campaign, run_campaign, station_hd1
 
 N_LOCKED, N_FREE, DURATION = 4, 4, 1.0
@@ -40,8 +40,12 @@ def _summary(d) -> str:
 
 
 def _diagnose(station, exps, **kw):
+    """The loop on the rig's own model and numerics (the adaptive Rodas3 solve of the smoothed model
+    that `hdjax._testbench.rig` records with), so that the base model is exact here; the diagnosis's
+    default, the fixed-step `VelocityImplicit` plant with exact sticking, is judged on the
+    independent bench (`tests/test_diagnose_bench.py`)."""
     start = identify_paper(exps, station.drive).parameters()
-    return diagnose(start, station.drive, exps, **kw)
+    return diagnose(start, station.drive, exps, simulator=Simulator(rtol=1e-6, atol=1e-8, measured_angle=True), **kw)
 
 
 def test_clean_data_gives_no_finding():

@@ -55,13 +55,6 @@ NOT_YET = {
                      "At full size too (seed 907, 2026-12-01): share 0.67, but +2.3 % held out with 4 of 8 free records "
                      "improved, +18 % of it in the one free record recorded early in the session (185 s; beta = 0.011, "
                      "tau = 510 s: under 0.5 % of the viscous friction in every other free record)",
-    "load_dependent_friction": "named until 2026-12-03 on one fold's margin (held out +16.2 %, halves +2.0 / +26.7 %, "
-                               "after sensor_bandwidth and input_between_samples); with the tachometer lag measured "
-                               "(2026-12-04: 0.733 ms, bench 0.747 ms) input_between_samples is no longer adopted and the "
-                               "first half goes to -0.9 % (+17.3 % in all, second half +30.6 %). The 20-dataset "
-                               "benchmarks name it on 5008 and 5021 and miss it on 5033 (SNR 5.4) either way. "
-                               "At full size too (seed 906, 2026-12-04): +3.3 % held out after sensor_offset and "
-                               "sensor_bandwidth, free tests +4.2 % (rule 5 %)",
 }
 
 

@@ -12,8 +12,10 @@ from .._discrepancy.significance import OUTPUT_ERROR_RULES
 from .._fit.paper import identify_paper
 from .._model.effects import MODEL_FORM_NAMES
 from .._plant.simulate import Simulator
+from .._plant.stepper import VelocityImplicit
 from .artifacts import effects_to_dict
 from .config import section_options
+from .fit import _substeps, _tolerance
 from .io import atomic_write_json, write_results
 from .progress import task
 
@@ -23,7 +25,9 @@ DEFAULTS = {
     "base_steps": 5,  # LM steps refining the base model
     "max_findings": 3,
     "min_relative_gain": OUTPUT_ERROR_RULES.min_relative_gain,  # held-out (misfit-scaled, whitened) SSE reduction where a finding acts
-    "rtol": 1e-6,  # ODE tolerance of every simulation
+    "solver": "velocity_implicit",  # the plant's numerics: fixed-step `VelocityImplicit`, or "rodas3" (adaptive, `rtol`)
+    "substeps": 4,  # steps per sample interval of velocity_implicit
+    "rtol": 1e-6,  # ODE tolerance of every simulation with "rodas3"
     "measured_angle": True,  # periodic terms at the measured wave-generator angle (`Simulator.measured_angle`)
     "per_record_noise": True,  # weigh every experiment by its own sensor-noise level
     "misfit_scaling": True,  # scale each (experiment, channel) by its misfit where over the noise
@@ -48,10 +52,28 @@ def _run_diagnose(paper, dataset, exps, files, opts, log):
         base_steps=int(opts["base_steps"]),
         max_findings=int(opts["max_findings"]),
         min_relative_gain=float(opts["min_relative_gain"]),
-        simulator=Simulator(rtol=float(opts["rtol"]), atol=1e-8, measured_angle=bool(opts["measured_angle"])),
+        simulator=diagnosis_simulator(opts),
         labels=files,
         log=log,
     )
+
+
+def diagnosis_simulator(opts: dict) -> Simulator:
+    """The simulator of every diagnosis simulation from the `diagnose` options: `solver`
+    "velocity_implicit" (the default: `hdjax.VelocityImplicit` at `substeps` steps per sample) or
+    "rodas3" (adaptive, at `rtol`, the default before 2026-12-04); the periodic terms act at the
+    measured wave-generator angle where `measured_angle`.
+
+    Why the fixed-step plant (independent bench, `benchmarks/diagnose_independent.py --substeps 4`,
+    2026-12-04, 2-core machine): the same findings as Rodas3 on the benchmark seeds and about half its
+    time per dataset (see benchmarks/RESULTS.md)."""
+    name = opts["solver"]
+    measured = bool(opts["measured_angle"])
+    if name == "velocity_implicit":
+        return Simulator(solver=VelocityImplicit(substeps=_substeps(opts, "substeps", "diagnose")), measured_angle=measured)
+    if name == "rodas3":
+        return Simulator(rtol=_tolerance(opts, "rtol", "diagnose"), atol=1e-8, measured_angle=measured)
+    raise ValueError(f"config `diagnose.solver` must be one of ['velocity_implicit', 'rodas3'], got {name!r}.")
 
 
 class DiagnosisProgress:
@@ -125,6 +147,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     t_start = time.time()
     out = pathlib.Path(out)
     opts = section_options(config, "diagnose", DEFAULTS)
+    diagnosis_simulator(opts)  # a bad solver, substeps or tolerance is refused before any work
     drive, exps, files, _ = dataset.dynamic_part("diagnose", at_least=2)  # two: it holds experiments out
     from .fit import _options as fit_options
 

@@ -72,16 +72,16 @@ def trajectory_simulator(trajectory: dict) -> Simulator:
     raise ValueError(f"config `fit.trajectory.solver` must be one of {list(SOLVERS)}, got {name!r}.")
 
 
-def _substeps(trajectory: dict, key: str) -> int:
-    """`fit.trajectory.<key>`, steps per sample interval of `velocity_implicit`: a whole number ≥ 1."""
+def _substeps(trajectory: dict, key: str, section: str = "fit.trajectory") -> int:
+    """`<section>.<key>`, steps per sample interval of `velocity_implicit`: a whole number ≥ 1."""
     substeps = trajectory[key]
     if not isinstance(substeps, int) or isinstance(substeps, bool) or substeps < 1:
-        raise ValueError(f"config `fit.trajectory.{key}` must be a whole number ≥ 1, got {substeps!r}.")
+        raise ValueError(f"config `{section}.{key}` must be a whole number ≥ 1, got {substeps!r}.")
     return substeps
 
 
-def _tolerance(trajectory: dict, key: str) -> float:
-    """`fit.trajectory.<key>`, a relative ODE tolerance: a number in (0, 0.1] (YAML reads `1e-5`
+def _tolerance(trajectory: dict, key: str, section: str = "fit.trajectory") -> float:
+    """`<section>.<key>`, a relative ODE tolerance: a number in (0, 0.1] (YAML reads `1e-5`
     without a decimal point as a string; one that reads as a number is taken)."""
     value = trajectory[key]
     try:
@@ -89,7 +89,7 @@ def _tolerance(trajectory: dict, key: str) -> float:
     except (TypeError, ValueError):
         x = float("nan")
     if not 0.0 < x <= 0.1:
-        raise ValueError(f"config `fit.trajectory.{key}` must be a relative tolerance in (0, 0.1], such as 1e-5; "
+        raise ValueError(f"config `{section}.{key}` must be a relative tolerance in (0, 0.1], such as 1e-5; "
                          f"got {value!r}.")
     return x
 
