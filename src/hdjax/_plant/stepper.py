@@ -16,7 +16,11 @@ manner of Moreau–Jean time stepping and Drake's discrete friction solvers:
 - **position- and load-dependent terms** (cogging, kinematic error, position- and load-dependent
   friction) are explicit: evaluated at a stage end predicted at constant speed, then once more at
   the first pass's stage end (a predictor–corrector, `corrector=True`; the second pass is skipped
-  where no term reads the predicted state, see `VelocityImplicit`).
+  where no term reads the predicted state, see `VelocityImplicit`). With
+  `Simulator.measured_angle` the wave-generator angle they act at is the record's, interpolated
+  between samples, at the stage's end (as the adaptive plant reads it).
+- `viscous_friction_law` multiplies the implicit viscous term; Tv·ω·((ω²+ε²)/ωr²)^((κ−1)/2) increases
+  with ω for every κ > 0, so the step equation stays monotone.
 
 **The implicit equation of one step is one scalar, monotone equation.** The unknown is
 $s = |\dot{\Delta\theta}_{n+1}|^\alpha\,\mathrm{sign}(\dot{\Delta\theta}_{n+1})$, the damping

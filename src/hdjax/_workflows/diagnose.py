@@ -65,8 +65,9 @@ def diagnosis_simulator(opts: dict) -> Simulator:
     measured wave-generator angle where `measured_angle`.
 
     Why the fixed-step plant (independent bench, `benchmarks/diagnose_independent.py --substeps 4`,
-    2026-12-04, 2-core machine): the same findings as Rodas3 on the benchmark seeds and about half its
-    time per dataset (see benchmarks/RESULTS.md)."""
+    2026-12-04, 2-core machine): 33 of 40 datasets named right against 34–35 with Rodas3 (the
+    differences knife edges), in about half its time per dataset; the shipped HD2 diagnosis 129 s
+    against 307 s with the same findings (see benchmarks/RESULTS.md)."""
     name = opts["solver"]
     measured = bool(opts["measured_angle"])
     if name == "velocity_implicit":
