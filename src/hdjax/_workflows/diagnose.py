@@ -15,7 +15,7 @@ from .._plant.simulate import Simulator
 from .._plant.stepper import VelocityImplicit
 from .artifacts import effects_to_dict
 from .config import section_options
-from .fit import _substeps, _tolerance
+from .fit import _options as fit_options, _substeps, _tolerance
 from .io import atomic_write_json, write_results
 from .progress import task
 
@@ -38,7 +38,7 @@ DEFAULTS = {
 }
 
 
-def _run_diagnose(paper, dataset, exps, files, opts, log):
+def _run_diagnose(paper, dataset, exps, files, opts, simulator, log):
     return diagnose(
         paper.parameters(), dataset.drive, exps,
         candidates=opts["candidates"],
@@ -52,7 +52,7 @@ def _run_diagnose(paper, dataset, exps, files, opts, log):
         base_steps=int(opts["base_steps"]),
         max_findings=int(opts["max_findings"]),
         min_relative_gain=float(opts["min_relative_gain"]),
-        simulator=diagnosis_simulator(opts),
+        simulator=simulator,
         labels=files,
         log=log,
     )
@@ -148,16 +148,14 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     t_start = time.time()
     out = pathlib.Path(out)
     opts = section_options(config, "diagnose", DEFAULTS)
-    diagnosis_simulator(opts)  # a bad solver, substeps or tolerance is refused before any work
+    simulator = diagnosis_simulator(opts)  # a bad solver, substeps or tolerance is refused before any work
     drive, exps, files, _ = dataset.dynamic_part("diagnose", at_least=2)  # two: it holds experiments out
-    from .fit import _options as fit_options
-
     fit_opts = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
     log(f"[1/3] paper's identification on {len(exps)} experiments (start of the base model)")
     paper = identify_paper(exps, drive, alpha=fit_opts["alpha"], Tss2=fit_opts["Tss2"], cutoff_hz=fit_opts["cutoff_hz"])
     log("[2/3] discrepancy loop (base fit, residual evidence, cross-validated candidates)")
     with DiagnosisProgress(log, opts) as watch:
-        d = _run_diagnose(paper, dataset, exps, files, opts, watch)
+        d = _run_diagnose(paper, dataset, exps, files, opts, simulator, watch)
     drifts = covariate_drifts(paper.per_experiment, exps)
     d.evidence["per_experiment_drifts"] = drifts
     log("[3/3] report and figures")
