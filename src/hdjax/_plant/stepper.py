@@ -380,59 +380,86 @@ def implicit_trajectory(
 
     def stage(t1, hist, tho_hist, thm_pred, start, s_guess):
         """Solve one stage ending at t1; `start` = (θ_m, ω_m, T, torsion, z) at the step start, from
-        which the explicit terms are predicted (θ_m at the stage end: `thm_pred`)."""
-        thm0, wm0, T0, tor0, z0 = start
-        P = stage_parameters(t1, hist, thm_pred, wm0, T0, tor0, z0)
-        first = _solve_step(P, s_guess, solver.iterations)
+        which the explicit terms are predicted (θ_m at the stage end: `thm_pred`).
 
-        def corrected(first):
-            """The stage again, its explicit terms at the first pass's stage end."""
-            s, out, stuck, conv = first
+        The corrector's second pass is the same `_solve_step` as the first, with the explicit terms
+        at the first pass's stage end: both passes are one traced pass in a two-iteration
+        `lax.scan`, so the stage's solve is compiled once."""
+        thm0, wm0, T0, tor0, z0 = start
+
+        def one_pass(carry):
+            """Solve the stage with the explicit terms at `carry`'s (θ_m, ω_m, T); the next pass's."""
+            s, _, _, conv, thm_e, wm_e, T_e, _ = carry
+            P = stage_parameters(t1, hist, thm_e, wm_e, T_e, tor0, z0)
+            s, out, stuck, conv_k = _solve_step(P, s, solver.iterations)
             r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
             thm1 = theta_m(q1, tho_hist + hist[4] * wo1, t1)
-            P1 = stage_parameters(t1, hist, thm1, wm1, 0.5 * (T0 + T1), tor0, z0)
-            s, out, stuck, conv2 = _solve_step(P1, s, solver.iterations)
-            return (s, out, stuck, conv & conv2), P1
+            return s, out, stuck, conv & conv_k, thm1, wm1, 0.5 * (T0 + T1), P["drive"]
 
+        # placeholders for the first pass's outputs, with the tangents and batch axes of the state
+        # (so that the scan is traced once, see `_tangent_dependence`)
+        zero = 0.0 * (s_guess + T0 + wm0 + thm_pred)
+        init = (s_guess, (zero,) * 8, jnp.zeros(jnp.shape(zero), dtype=bool), jnp.ones(jnp.shape(zero), dtype=bool),
+                thm_pred, wm0, T0, zero)
         if not solver.corrector:
-            s, out, stuck, conv = first
-        elif explicit_state_terms:
-            (s, out, stuck, conv), P = corrected(first)
+            carry = one_pass(init)
         else:
             # Without a position- or load-dependent effect only a falling Stribeck term too steep to
             # be implicit reads the predicted state; with both amplitudes ≤ 0 (friction rising with
             # speed, as HD1's and HD2's) it is always implicit and the second pass would solve the
             # same equation again: skipped. The predicate depends on the parameters alone, so under
-            # the experiment `vmap` it stays a branch. (`P`'s drive, A and histories, used below, do
-            # not depend on the prediction.)
-            s, out, stuck, conv = jax.lax.cond(stribeck_may_lag, lambda f: corrected(f)[0], lambda f: f, first)
+            # the experiment `vmap` it stays a branch.
+            needed = jnp.asarray(True) if explicit_state_terms else stribeck_may_lag
+
+            def body(c, k):
+                return jax.lax.cond((k == 0) | needed, one_pass, lambda c: c, c), None
+
+            carry, _ = jax.lax.scan(body, init, jnp.arange(2))
+        s, out, stuck, conv, *_, drive_t1 = carry
         r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
         wm1 = jnp.where(stuck, 0.0, wm1)
         tho1 = tho_hist + hist[4] * wo1
-        F1 = P["drive"] - T1 / N - P["A"] * (wm1 - P["wm_hist"])  # friction, sliding or holding
+        A, wm_hist = hist[0], hist[1]
+        F1 = drive_t1 - T1 / N - A * (wm1 - wm_hist)  # friction, sliding or holding
         return (q1, wm1, tho1, wo1, z1, s, T1, F1), tor1, conv
 
     def step(state, t0):
-        """One TR-BDF2 step from t0 to t0 + h: a trapezoidal stage to t0 + γh, then BDF2 to t0 + h."""
+        """One TR-BDF2 step from t0 to t0 + h: a trapezoidal stage to t0 + γh, then BDF2 to t0 + h.
+
+        Both stages are one `stage` call in a two-iteration `lax.scan` (stage k = 0, 1; their
+        coefficients selected by k): the stage, the step's whole cost, is traced and compiled once
+        instead of twice."""
         q0, wm0, tho0, wo0, z0, s0, T0, F0 = state
         thm0 = theta_m(q0, tho0, t0)
         tor0 = torsion_of(q0, thm0)
         drive0 = electric(t0) + eff.periodic("cogging", thm0)
-        # trapezoidal stage: the start's forces enter through the histories
-        bh = 0.5 * _GAMMA * h
-        A = p.Jeff / bh
-        hist = (A, wm0 + (drive0 - T0 / N - F0) / A, q0 + bh * (wm0 / N - wo0), wo0 + bh * f * T0 / drive.load_inertia,
-                bh, bh * f / drive.load_inertia)
-        thm_pred = predicted_angle(t0 + _GAMMA * h, _GAMMA * h, q0, tho0, wo0, thm0, wm0)
-        stage_g, tor_g, conv_g = stage(t0 + _GAMMA * h, hist, tho0 + bh * wo0, thm_pred, (thm0, wm0, T0, tor0, z0), s0)
-        qg, wmg, thog, wog, zg, s_g, Tg, _ = stage_g
-        # BDF2 stage on (t0, t0 + γh, t0 + h)
-        bh = _C2 * h
-        hist = (p.Jeff / bh, _C1 * wmg - _C0 * wm0, _C1 * qg - _C0 * q0, _C1 * wog - _C0 * wo0, bh, bh * f / drive.load_inertia)
-        thmg = theta_m(qg, thog, t0 + _GAMMA * h)
-        thm_pred = predicted_angle(t0 + h, (1.0 - _GAMMA) * h, qg, thog, wog, thmg, wmg)
-        out, _, conv_1 = stage(t0 + h, hist, _C1 * thog - _C0 * tho0, thm_pred, (thmg, wmg, Tg, tor_g, zg), s_g)
-        return out, conv_g & conv_1
+
+        def one_stage(prev, k):
+            """Stage k from the end of the one before (k = 0: the step start; k = 1: t0 + γh)."""
+            (qp, wmp, thop, wop, zp, sp, Tp, _), torp = prev
+            first = k == 0
+            tp = t0 + jnp.where(first, 0.0, _GAMMA * h)
+            t1 = t0 + jnp.where(first, _GAMMA * h, h)
+            # trapezoidal stage: the start's forces enter through the histories; BDF2 stage on
+            # (t0, t0 + γh, t0 + h)
+            bh = jnp.where(first, 0.5 * _GAMMA * h, _C2 * h)
+            A = p.Jeff / bh
+            hist = (
+                A,
+                jnp.where(first, wm0 + (drive0 - T0 / N - F0) / A, _C1 * wmp - _C0 * wm0),
+                jnp.where(first, q0 + bh * (wm0 / N - wo0), _C1 * qp - _C0 * q0),
+                jnp.where(first, wo0 + bh * f * T0 / drive.load_inertia, _C1 * wop - _C0 * wo0),
+                bh,
+                bh * f / drive.load_inertia,
+            )
+            tho_hist = jnp.where(first, tho0 + bh * wo0, _C1 * thop - _C0 * tho0)
+            thmp = theta_m(qp, thop, tp)
+            thm_pred = predicted_angle(t1, t1 - tp, qp, thop, wop, thmp, wmp)
+            out, tor1, conv = stage(t1, hist, tho_hist, thm_pred, (thmp, wmp, Tp, torp, zp), sp)
+            return (out, tor1), conv
+
+        (out, _), conv = jax.lax.scan(one_stage, (state, tor0), jnp.arange(2))
+        return out, jnp.all(conv)
 
     def sample_interval(state, t0):
         def body(st, k):
