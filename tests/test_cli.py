@@ -231,6 +231,30 @@ def test_diagnose_solver_option_builds_the_named_simulator():
         diagnosis_simulator({**opts, "solver": "rodas3", "rtol": 2.0})
 
 
+def test_sensitivity_solver_option_builds_the_named_simulator():
+    """`sensitivity.solver` picks the sensitivity and ablation numerics: adaptive Rodas3 at `rtol`
+    with its step budget `max_steps` (the default) or the fixed-step stepper at `substeps`; a bad
+    value names its key."""
+    import hdjax
+    from hdjax._workflows.sensitivity import DEFAULTS, workflow_simulator
+
+    opts = dict(DEFAULTS)
+    sim = workflow_simulator(opts)
+    assert isinstance(sim.solver, hdjax.Rodas3) and sim.rtol == opts["rtol"] == 1e-4 and sim.max_steps == 20_000
+    sim = workflow_simulator({**opts, "solver": "velocity_implicit", "substeps": 8})
+    assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.substeps == 8
+    sim = workflow_simulator({**opts, "rtol": "1e-5", "max_steps": 5000})
+    assert sim.rtol == 1e-5 and sim.max_steps == 5000
+    with pytest.raises(ValueError, match=r"sensitivity\.solver.*velocity_implicit"):
+        workflow_simulator({**opts, "solver": "ros34pw2"})
+    with pytest.raises(ValueError, match=r"sensitivity\.substeps"):
+        workflow_simulator({**opts, "solver": "velocity_implicit", "substeps": 1.5})
+    with pytest.raises(ValueError, match=r"sensitivity\.rtol"):
+        workflow_simulator({**opts, "solver": "rodas3", "rtol": 0.0})
+    with pytest.raises(ValueError, match=r"sensitivity\.max_steps"):
+        workflow_simulator({**opts, "solver": "rodas3", "max_steps": -1})
+
+
 def test_per_experiment_fits_run_at_their_own_tolerance():
     """The per-experiment fits use the joint fit's numerics, coarser: `per_experiment_substeps`
     (half the joint fit's by default) with the fixed-step stepper, `per_experiment_rtol` (a decade
