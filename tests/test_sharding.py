@@ -138,3 +138,23 @@ def test_the_compilation_cache_folder_follows_the_environment(tmp_path):
     assert compilation_cache_dir({"XDG_CACHE_HOME": "/x/cache"}) == pathlib.Path("/x/cache/hdjax/xla")
     assert compilation_cache_dir({}) == pathlib.Path.home() / ".cache" / "hdjax" / "xla"
     assert compilation_cache_dir({COMPILATION_CACHE_ENV: " "}) == pathlib.Path.home() / ".cache" / "hdjax" / "xla"
+
+
+def test_lapack_in_a_device_map_is_mapped_on_the_cpu_whatever_the_batching(monkeypatch):
+    """A function that calls LAPACK inside the device map runs one experiment after the other on the
+    CPU even where `HDJAX_EXPERIMENT_BATCHING=vmap` asks for lock-step lanes: a batched LAPACK call
+    there waits on the thread pool every device's program occupies (the per-experiment fits of
+    `hdjax fit` hung on two CPU devices, 2026-12-04). Without LAPACK the override is followed."""
+    import jax
+    import jax.numpy as jnp
+
+    from hdjax._plant.sharding import for_each_experiment
+
+    monkeypatch.setenv("HDJAX_EXPERIMENT_BATCHING", "vmap")
+    x = jnp.stack([jnp.eye(3) * (k + 1.0) for k in range(4)])
+    fn = lambda a: jnp.linalg.solve(a, jnp.ones(3))
+    mapped = str(jax.make_jaxpr(lambda a: for_each_experiment(fn, a, lapack_in_device_map=True))(x))
+    batched = str(jax.make_jaxpr(lambda a: for_each_experiment(fn, a))(x))
+    assert jax.default_backend() == "cpu"
+    assert "scan" in mapped and "scan" not in batched
+    np.testing.assert_allclose(for_each_experiment(fn, x, lapack_in_device_map=True), for_each_experiment(fn, x))

@@ -852,7 +852,9 @@ def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol,
                                          max_steps=max_steps, throw=False)
                 return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
 
-            return for_each_experiment(one, *b)
+            # each fit's LM solves its own small linear systems: mapped on a multi-device CPU (see
+            # `for_each_experiment`); on one device and on accelerators as the batching says
+            return for_each_experiment(one, *b, lapack_in_device_map=mesh is not None)
 
         return map_experiments(per_device, mesh)((pmap, theta0_, p0_, drive_, sigma_), (z, batch_, idx, on))
 

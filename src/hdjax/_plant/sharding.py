@@ -249,9 +249,18 @@ def experiment_batching(*, fixed_cost: bool = False) -> str:
     return "map" if jax.default_backend() == "cpu" and not fixed_cost else "vmap"
 
 
-def for_each_experiment(fn, *batched, fixed_cost: bool = False):
+def for_each_experiment(fn, *batched, fixed_cost: bool = False, lapack_in_device_map: bool = False):
     """`fn(*slices)` for every index of the leading (experiment) axis of `batched`, stacked; run by
-    `vmap` or `jax.lax.map` as `experiment_batching(fixed_cost=...)` says (same results either way)."""
-    if experiment_batching(fixed_cost=fixed_cost) == "vmap":
+    `vmap` or `jax.lax.map` as `experiment_batching(fixed_cost=...)` says (same results either way).
+
+    `lapack_in_device_map`: `fn` calls LAPACK (a linear solve, a least-squares step, an SVD) and
+    runs inside `map_experiments` on several devices. On the CPU it is then always mapped: a
+    batched LAPACK call splits its batch over XLA's CPU thread pool and waits for the parts, and
+    with every device's program running on that same pool, each waiting, nothing is left to run
+    them. (Measured 2026-12-04: `HDJAX_EXPERIMENT_BATCHING=vmap hdjax fit configs/hd2.yaml` on the
+    2-core machine hung in the per-experiment fits, both pool threads waiting, the batched SVD of
+    the LM's stopping rule waiting for its parts.)"""
+    how = experiment_batching(fixed_cost=fixed_cost)
+    if how == "vmap" and not (lapack_in_device_map and jax.default_backend() == "cpu"):
         return jax.vmap(fn)(*batched)
     return jax.lax.map(lambda xs: fn(*xs), batched)
