@@ -15,7 +15,7 @@ from .._plant.simulate import Simulator
 from .._plant.stepper import VelocityImplicit
 from .artifacts import effects_to_dict
 from .config import section_options
-from .fit import _options as fit_options, _substeps, _tolerance
+from .fit import _options as fit_options, _tolerance, _whole_number
 from .io import atomic_write_json, write_results
 from .progress import task
 
@@ -71,7 +71,7 @@ def diagnosis_simulator(opts: dict) -> Simulator:
     name = opts["solver"]
     measured = bool(opts["measured_angle"])
     if name == "velocity_implicit":
-        return Simulator(solver=VelocityImplicit(substeps=_substeps(opts, "substeps", "diagnose")), measured_angle=measured)
+        return Simulator(solver=VelocityImplicit(substeps=_whole_number(opts, "substeps", "diagnose")), measured_angle=measured)
     if name == "rodas3":
         return Simulator(rtol=_tolerance(opts, "rtol", "diagnose"), atol=1e-8, measured_angle=measured)
     raise ValueError(f"config `diagnose.solver` must be one of ['velocity_implicit', 'rodas3'], got {name!r}.")

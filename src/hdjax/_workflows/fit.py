@@ -68,16 +68,17 @@ def trajectory_simulator(trajectory: dict) -> Simulator:
         solver = Rodas3() if name == "rodas3" else PLANT_W_METHOD
         return Simulator(solver=solver, rtol=rtol, atol=rtol * 1e-2)
     if name == "velocity_implicit":
-        return Simulator(solver=VelocityImplicit(substeps=_substeps(trajectory, "substeps")))
+        return Simulator(solver=VelocityImplicit(substeps=_whole_number(trajectory, "substeps")))
     raise ValueError(f"config `fit.trajectory.solver` must be one of {list(SOLVERS)}, got {name!r}.")
 
 
-def _substeps(trajectory: dict, key: str, section: str = "fit.trajectory") -> int:
-    """`<section>.<key>`, steps per sample interval of `velocity_implicit`: a whole number ≥ 1."""
-    substeps = trajectory[key]
-    if not isinstance(substeps, int) or isinstance(substeps, bool) or substeps < 1:
-        raise ValueError(f"config `{section}.{key}` must be a whole number ≥ 1, got {substeps!r}.")
-    return substeps
+def _whole_number(options: dict, key: str, section: str = "fit.trajectory") -> int:
+    """`<section>.<key>`, a whole number ≥ 1 (steps per sample interval of `velocity_implicit`, a
+    step budget); anything else is refused, naming the key."""
+    value = options[key]
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ValueError(f"config `{section}.{key}` must be a whole number ≥ 1, got {value!r}.")
+    return value
 
 
 def _tolerance(trajectory: dict, key: str, section: str = "fit.trajectory") -> float:
@@ -111,7 +112,7 @@ def per_experiment_simulator(trajectory: dict) -> Simulator:
     Which fits converge matters more than the tolerance: at 3e-5 one fit ran out of
     `per_experiment_max_steps`, and leaving it out moved K1's consistency from 0.99 % to 0.65 %."""
     return trajectory_simulator({**trajectory, "rtol": _tolerance(trajectory, "per_experiment_rtol"),
-                                 "substeps": _substeps(trajectory, "per_experiment_substeps")})
+                                 "substeps": _whole_number(trajectory, "per_experiment_substeps")})
 
 
 def _options(config: dict) -> dict:

@@ -32,7 +32,7 @@ from .._plant.simulate import Simulator
 from .._plant.stepper import VelocityImplicit
 from .artifacts import fit_json_dataset, read_fit_json
 from .config import section_options
-from .fit import _substeps, _tolerance
+from .fit import _tolerance, _whole_number
 from .io import write_results
 
 __all__ = ["DEFAULTS", "SCHEMA", "run_sensitivity", "workflow_simulator"]
@@ -90,13 +90,10 @@ def workflow_simulator(opts: dict) -> Simulator:
     instead of about 1 (Rodas3 passes)."""
     name = opts["solver"]
     if name == "velocity_implicit":
-        return Simulator(solver=VelocityImplicit(substeps=_substeps(opts, "substeps", "sensitivity")))
+        return Simulator(solver=VelocityImplicit(substeps=_whole_number(opts, "substeps", "sensitivity")))
     if name == "rodas3":
         rtol = _tolerance(opts, "rtol", "sensitivity")
-        steps = opts["max_steps"]
-        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-            raise ValueError(f"config `sensitivity.max_steps` must be a whole number ≥ 1, got {steps!r}.")
-        return Simulator(rtol=rtol, atol=rtol * 1e-2, max_steps=steps)
+        return Simulator(rtol=rtol, atol=rtol * 1e-2, max_steps=_whole_number(opts, "max_steps", "sensitivity"))
     raise ValueError(f"config `sensitivity.solver` must be one of ['velocity_implicit', 'rodas3'], got {name!r}.")
 
 
