@@ -109,20 +109,26 @@ def test_use_host_devices_sets_the_count_before_jax_starts_and_import_starts_not
     """`import hdjax` must not start JAX's backends (else the commands could not spread experiments
     over the cores), nor import matplotlib (only `hdjax.plotting` and the commands' figure step
     do); `use_host_devices(3)` then gives three CPU devices, and a second call (flag already set)
-    changes nothing."""
+    changes nothing. The CPU compile flags are added once, and a user's own setting of them is kept."""
     script = (
-        "import sys, hdjax, hdjax.bench, hdjax.fit, hdjax.diagnose\n"
+        "import os, sys, hdjax, hdjax.bench, hdjax.fit, hdjax.diagnose\n"
         "from jax._src import xla_bridge\n"
         "started = xla_bridge.backends_are_initialized() or 'matplotlib' in sys.modules\n"
         "from hdjax._plant.sharding import use_host_devices\n"
         "n = use_host_devices(3)\n"
         "again = use_host_devices(5)\n"
         "import jax\n"
-        "print(started, n, again, jax.device_count())\n"
+        "print(started, n, again, jax.device_count(), [f for f in os.environ['XLA_FLAGS'].split() if 'fusion_emitters' in f])\n"
     )
-    out = subprocess.run([sys.executable, "-c", script], env=_cpu_env(), capture_output=True, text=True, timeout=300)
+    env = _cpu_env()
+    env["XLA_FLAGS"] = " ".join(f for f in env["XLA_FLAGS"].split() if "fusion_emitters" not in f)
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert out.stdout.split() == ["False", "3", "None", "3"], out.stdout
+    assert out.stdout.split() == ["False", "3", "None", "3", "['--xla_cpu_use_fusion_emitters=false']"], out.stdout
+    env["XLA_FLAGS"] = "--xla_cpu_use_fusion_emitters=true"  # the user's own setting is kept
+    own = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert own.returncode == 0, own.stderr[-3000:]
+    assert own.stdout.split() == ["False", "3", "None", "3", "['--xla_cpu_use_fusion_emitters=true']"], own.stdout
 
 
 def test_the_compilation_cache_folder_follows_the_environment(tmp_path):
