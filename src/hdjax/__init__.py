@@ -107,6 +107,7 @@ from ._model.smooth import smooth_sign as smooth_sign, smooth_signed_power as sm
 from ._plant.rosenbrock import FirstStep as FirstStep, Rodas3 as Rodas3, Ros34PW2 as Ros34PW2, StepToSamples as StepToSamples
 from ._plant.sharding import (
     COMPILATION_CACHE_ENV as COMPILATION_CACHE_ENV,
+    CPU_COMPILE_FLAGS as CPU_COMPILE_FLAGS,
     HOST_DEVICES_ENV as HOST_DEVICES_ENV,
     available_cores as available_cores,
     compilation_cache_dir as compilation_cache_dir,
