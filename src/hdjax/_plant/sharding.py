@@ -123,7 +123,8 @@ def use_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.Path
 #: 9.4 s → 6.4 s to compile, 0.62 s → 0.66 s to run; its simulation program 4.2 s → 2.7 s, 0.29 s →
 #: 0.33 s; `test_model_form_derivatives_at_zero_match_finite_differences` 15.3 s → 9.2 s of XLA
 #: compilation. Compilation is most of a command's first run and of the test suite's time.
-CPU_COMPILE_FLAGS = "--xla_cpu_use_fusion_emitters=false"
+_FUSION_EMITTERS = "xla_cpu_use_fusion_emitters"
+CPU_COMPILE_FLAGS = f"--{_FUSION_EMITTERS}=false"
 
 
 def use_host_devices(n: int | None = None) -> int | None:
@@ -132,9 +133,9 @@ def use_host_devices(n: int | None = None) -> int | None:
     experiments over all cores. On the CPU an experiment's ODE solve runs on one core (`lax.map`,
     see `experiment_batching`), so one device leaves the other cores idle.
 
-    It only sets `XLA_FLAGS=--xla_force_host_platform_device_count=n`, which XLA reads when its
-    backends start: call it before the first JAX computation. It does nothing where the flag is
-    already set, where the backends have started, or for `n` ≤ 1. The commands (`hdjax fit`, ...)
+    It sets `XLA_FLAGS=--xla_force_host_platform_device_count=n`, which XLA reads when its
+    backends start: call it before the first JAX computation. It sets no count where the flag is
+    already set or for `n` ≤ 1, and does nothing once the backends have started. The commands (`hdjax fit`, ...)
     and the test suite call it; a library import never does. Returns the count set, or None.
 
     Before the backends start it also adds `CPU_COMPILE_FLAGS` to `XLA_FLAGS` (whatever `n`),
@@ -148,7 +149,7 @@ def use_host_devices(n: int | None = None) -> int | None:
     if xla_bridge.backends_are_initialized():
         return None
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_use_fusion_emitters" not in flags:
+    if _FUSION_EMITTERS not in flags:
         flags = f"{flags} {CPU_COMPILE_FLAGS}".strip()
         os.environ["XLA_FLAGS"] = flags
     if "xla_force_host_platform_device_count" in flags:
