@@ -144,11 +144,14 @@ def _line_at_start(t: Array, y: Array, mask: Array, n: int) -> tuple[Array, Arra
     return value, slope
 
 
-def initial_state(p: Parameters, drive: Drive, exp: Experiment, simulator: Simulator = Simulator()):
+def initial_state(p: Parameters, drive: Drive, exp: Experiment, simulator: Simulator = Simulator(), *,
+                  exact_sticking: bool | None = None):
     """Initial plant state estimated from the first samples of the measured record.
 
     Motor velocity, torque and output angle come from local linear fits (unbiased under a linear
     trend, averaging the sensor noise); torsion inverts eq. 5 at the initial torsion rate.
+    `exact_sticking` (default: the simulator's solver is `VelocityImplicit`) says which law decides
+    whether the motor can be at rest (see the comment in the body).
     Returns `(y0, theta_m0)`: the state tuple and the initial motor angle (rad)."""
     n = min(simulator.initial_window, exp.time.shape[0])
     N = drive.gear_ratio
@@ -162,8 +165,24 @@ def initial_state(p: Parameters, drive: Drive, exp: Experiment, simulator: Simul
     # δω into a torque error Tst·|δω/N|^α: 0.05 rad/s, a noise excursion of the tachometer over the
     # first samples, is 1.3 N·m on HD1, and a motor that sticks at once keeps that torsion error
     # until it breaks away.)
+    #
+    # Which net torques hold the motor depends on the friction law at zero velocity. A breakaway
+    # torque below zero (T_s + T_ss1 < 0, as the paper's HD2 in the negative direction: friction
+    # that would push a resting motor) counts as zero for the smoothed plant (its tanh friction
+    # creeps to a stable rest for any net torque between −(Tsn + Tssn1)₊ and (Tsp + Tssp1)₊) and
+    # under `low_speed_friction`'s creep ramp (the stepper clamps the ramped magnitude at zero).
+    # The exact stepper's set-valued law does not clamp it: it holds the motor only for net torques
+    # in [−(Tsn + Tssn1), Tsp + Tssp1], and outside that the motor moves at once, so a start
+    # estimated at rest there would be wrong from the first step (measured: a locked record of the
+    # paper's HD2 started at rest slides back at −0.037 rad/s, the damping taking −0.91 N·m; taken as
+    # stuck, the start put that torque into the spring, and the motor velocity's χ² at the true
+    # parameters was 10.3 instead of about 1).
+    exact = isinstance(simulator.solver, VelocityImplicit) if exact_sticking is None else exact_sticking
+    lower, upper = p.Tsn + p.Tssn1, p.Tsp + p.Tssp1
+    if not exact:
+        lower, upper = jnp.maximum(lower, 0.0), jnp.maximum(upper, 0.0)
     net = drive.torque_constant * i0 - T0 / N
-    margin = jnp.minimum(jnp.maximum(p.Tsp + p.Tssp1, 0.0) - net, net + jnp.maximum(p.Tsn + p.Tssn1, 0.0))
+    margin = jnp.minimum(upper - net, net + lower)
     dt = exp.time[1] - exp.time[0]
     stuck = (margin > 0) & (p.Jeff * jnp.abs(wm0) < margin * dt)
     wm0 = jnp.where(stuck, 0.0, wm0)
@@ -428,6 +447,8 @@ def _initial_state_with_effects(p, drive, exp, effects, simulator):
     """`initial_state` for a model with `effects`: the state at the first sample and θm0 (rad),
     from readings without the modelled sensor offsets and torque-sensor ripple, and with the
     kinematic torsion state corrected for a modelled kinematic error."""
+    # the stepper's exact sticking, unless `low_speed_friction`'s creep ramp regularises it
+    exact_sticking = isinstance(simulator.solver, VelocityImplicit) and "low_speed_friction" not in effects.active
     if "sensor_offset" in effects.active:  # the initial state from offset-free readings
         init_exp = eqx.tree_at(
             lambda e: (e.torque, e.motor_velocity),
@@ -436,7 +457,7 @@ def _initial_state_with_effects(p, drive, exp, effects, simulator):
         )
     else:
         init_exp = exp
-    y0, th_m0 = initial_state(p, drive, init_exp, simulator)
+    y0, th_m0 = initial_state(p, drive, init_exp, simulator, exact_sticking=exact_sticking)
     if "torque_sensor_ripple" in effects.active:
         # the ripple is in the measured torque, not in the drive: the initial torsion comes from the
         # torque without it (else a locked test whose motor sticks keeps the ripple's value at the
@@ -446,7 +467,7 @@ def _initial_state_with_effects(p, drive, exp, effects, simulator):
         th_m = th_m0 + y0[1] * (exp.time[:n] - exp.time[0])
         init_exp = eqx.tree_at(lambda e: e.torque, init_exp,
                                init_exp.torque.at[:n].add(-effects.periodic("torque_sensor_ripple", th_m)))
-        y0, th_m0 = initial_state(p, drive, init_exp, simulator)
+        y0, th_m0 = initial_state(p, drive, init_exp, simulator, exact_sticking=exact_sticking)
     if "nonlinear_stiffness" in effects.active or "lost_motion" in effects.active:
         # `initial_state` inverted the linear spring (Δθ0 = Tk0/K1); with a cubic or dead-zone
         # spring the torsion that gives the same elastic torque Tk0 differs (by K3·Δθ³/K1 or up to

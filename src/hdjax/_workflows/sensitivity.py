@@ -42,7 +42,7 @@ SCHEMA = "hdjax.sensitivity/1"
 
 DEFAULTS = {
     "fit_json": None,  # path of a fit.json whose parameter values to use
-    "solver": "rodas3",  # or "velocity_implicit" (the fixed-step exact plant; see `workflow_simulator`)
+    "solver": "velocity_implicit",  # the fixed-step exact plant, or "rodas3" (see `workflow_simulator`)
     "substeps": 4,  # steps per sample interval of velocity_implicit
     "rtol": 1e-4,  # solver tolerance of the sensitivity and ablation simulations (rodas3)
     "max_steps": 20_000,  # step budget per experiment of rodas3 (a simulation that exhausts it is reported)
@@ -72,22 +72,19 @@ def _options(config: dict) -> dict:
 
 
 def workflow_simulator(opts: dict) -> Simulator:
-    """The simulator of the sensitivity and ablation runs (options as `DEFAULTS`): `solver` "rodas3"
-    (the default: adaptive Rosenbrock on the smoothed model at `rtol`, with `max_steps`) or
-    "velocity_implicit" (`hdjax.VelocityImplicit` at `substeps` steps per sample, the exact model
-    the fit and the diagnosis use; derivatives by the implicit function theorem at each step).
-    A bad value names its key.
+    """The simulator of the sensitivity and ablation runs (options as `DEFAULTS`): `solver`
+    "velocity_implicit" (the default: `hdjax.VelocityImplicit` at `substeps` steps per sample, the
+    exact model the fit and the diagnosis use; derivatives by the implicit function theorem at each
+    step) or "rodas3" (adaptive Rosenbrock on the smoothed model at `rtol`, with `max_steps`; the
+    default until 2026-12-05). A bad value names its key.
 
     Measured on the shipped HD2 campaign (2026-12-04, fifty-second session, 2-core machine, empty
     compilation cache): "velocity_implicit" at 4 substeps 13.7 s inside against 20.7 s; its
     standard errors of K1 … Tsn within 1 % of Rodas3's, the Stribeck amplitudes' 4–13 % lower (the
     exact model against the smoothed one), within 0.3 % of its own at 16 substeps; the ablation
-    figures within 2 %. It is not the default yet: where a record's torque already curves over the
-    first samples, the intercept of `initial_state`'s line fit, and so the initial torsion, is
-    biased (0.79 N·m on `tests/test_sensitivity.py`'s tiny locked record, whose current starts as
-    t²), and the exact plant keeps that torsion while the motor sticks, where the smoothed model's
-    creep forgets it: there the truth parameters leave the locked record's velocity at χ² 10
-    instead of about 1 (Rodas3 passes)."""
+    figures within 2 %. What held it back was `initial_state`'s rest test, which used the smoothed
+    plant's breakaway interval with the exact plant (see its comment; the tiny locked record of
+    `tests/test_sensitivity.py` left the velocity at χ² 10.3 at the truth parameters, 0.74 now)."""
     name = opts["solver"]
     if name == "velocity_implicit":
         return Simulator(solver=VelocityImplicit(substeps=_whole_number(opts, "substeps", "sensitivity")))
