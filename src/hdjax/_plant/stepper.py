@@ -58,7 +58,8 @@ set-valued sticking is that law's rigid limit (δ → 0); `simulate` refuses the
 """
 
 import functools
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -292,33 +293,37 @@ _C0 = (1.0 - _GAMMA) ** 2 / (_GAMMA * (2.0 - _GAMMA))
 _C2 = (1.0 - _GAMMA) / (2.0 - _GAMMA)
 
 
-def implicit_trajectory(
-    p,
-    drive,
-    exp,
-    y0,
-    geometry,
-    current,
-    effects: Effects,
-    vc,
-    dt,
-    solver: VelocityImplicit,
-):
-    """Step one experiment through its sample times with TR-BDF2 stages (see the module
-    docstring). Returns per-sample arrays (q, ω_m, θ_o, ω_o, torque T, torsion Δθ, θ_m), whether
-    every step's root converged, and the number of steps.
+class PlantSteps(NamedTuple):
+    """The stepper's functions for one plant with the current bound (`plant_steps(...)(current)`):
+    `start(y0, t0)` the step state at the sample `t0` from the plant state `y0` = (q, ω_m, θ_o,
+    ω_o); `step(state, t0)` one TR-BDF2 step of length h from `t0`, returning the new state and
+    whether its roots converged; `theta_m(q, θ_o, t[, angles])` the wave-generator angle (rad);
+    `torsion_of(q, θ_m)` the true torsion (rad). The step state is (q, ω_m, θ_o, ω_o, z, s, T, F):
+    kinematic torsion, velocities and output angle, the Dahl state, the damping unknown, the
+    transmitted torque (N·m) and the friction (N·m)."""
 
-    It stays long (about 135 lines) on purpose: the nested `stage`, `step` and `sample_interval`
-    closures form one `lax.scan` body over the experiment's constants (N, h, geometry, current,
-    effects); lifting them to module level would thread a dozen arguments through every call."""
+    start: Callable
+    step: Callable
+    theta_m: Callable
+    torsion_of: Callable
+
+
+def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, solver: VelocityImplicit):
+    """The TR-BDF2 stages of the module docstring for one plant (`free`: 1.0 free output, 0.0
+    locked; `start_time`: the record's session time, s, for `thermal_drift`; step `h`, s).
+    Returns `bind(current) -> PlantSteps`, `current` anything with `evaluate(t)` (A): the
+    recorded current of a record (`implicit_trajectory`) or the held current of one sample
+    interval of a sampled loop (`hdjax._control.closed_loop`).
+
+    It stays long (about 150 lines) on purpose: the nested `stage`, `step` and `start` closures
+    form one `lax.scan` body over the plant's constants (N, h, geometry, current, effects);
+    lifting them to module level would thread a dozen arguments through every call."""
     N = drive.gear_ratio
-    m = solver.substeps
-    h = dt / m
     q_g, tho_g, thm_g, measured_out = geometry
     # the steps read the measured angle only where a periodic term acts at it; the reported angle is
     # the measured one either way (as the adaptive plant's vector field and outputs)
     measured = measured_out if set(effects.active) & set(PERIODIC) else None
-    f = exp.free
+    f = free
     eff = effects
     Km = drive.torque_constant
     delay = effects.input_delay.delay if "input_delay" in effects.active else 0.0
@@ -341,12 +346,9 @@ def implicit_trajectory(
     def torsion_of(q, thm):
         return q + (eff.periodic("kinematic_error", thm) if ke else 0.0)
 
-    def electric(t):
-        return Km * current.evaluate(t - delay)
-
     def viscous_factor(t):
         if "thermal_drift" in eff.active:
-            return eff.thermal_drift.factor(exp.start_time + t)
+            return eff.thermal_drift.factor(start_time + t)
         return 1.0
 
     # the effects whose explicit terms read the state predicted at the stage end (`stage_parameters`);
@@ -355,135 +357,167 @@ def implicit_trajectory(
         {"cogging", "kinematic_error", "position_dependent_friction", "load_dependent_friction"} & set(eff.active))
     stribeck_may_lag = (p.Tssp1 > 0) | (p.Tssn1 > 0)
 
-    def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0):
-        """The stage equation's data: `hist` = (A, ω_m, q, ω_o history, bh, fh/J); the explicit
-        terms (position- and load-dependent) evaluated at the predicted stage end (θ_m1, ω_m1, T1)."""
-        A, wm_hist, q_hist, wo_hist, bh, fh_J = hist
-        pdf = 1.0 + eff.periodic("position_dependent_friction", thm1)
-        load = (jnp.abs(eff.load_dependent_friction.mu) * jnp.sqrt(T1 * T1 + 1e-6) / N
-                if "load_dependent_friction" in eff.active else 0.0)
-        P: dict[str, Any] = dict(
-            alpha=p.alpha, K1=p.K1, Tst=p.Tst, N=N, A=A, bh=bh, fh_J=fh_J,
-            wm_hist=wm_hist, wo_hist=wo_hist, q_hist=q_hist, tor0=tor0, z0=z0,
-            Tvp=p.Tvp, Tvn=p.Tvn, Tssp1=p.Tssp1, Tssn1=p.Tssn1, Tss2=p.Tss2, vc=vc,
-            visc=viscous_factor(t1),
-            Tcp=p.Tsp * pdf + load,
-            Tcn=p.Tsn * pdf + load,
-            g_lag=jnp.exp(-((wm1 / p.Tss2) ** 2)),
-            e1=eff.periodic("kinematic_error", thm1) if ke else 0.0,
-            edot1=eff.periodic_rate("kinematic_error", thm1, wm1) if ke else 0.0,
-            drive=electric(t1) + eff.periodic("cogging", thm1),
-        )
-        P = {k: jnp.asarray(v, dtype=float) for k, v in P.items()}
-        P["eff"] = eff
-        return P
+    def bind(current) -> PlantSteps:
+        def electric(t):
+            return Km * current.evaluate(t - delay)
 
-    def stage(t1, hist, tho_hist, thm_pred, start, s_guess):
-        """Solve one stage ending at t1; `start` = (θ_m, ω_m, T, torsion, z) at the step start, from
-        which the explicit terms are predicted (θ_m at the stage end: `thm_pred`).
-
-        The corrector's second pass is the same `_solve_step` as the first, with the explicit terms
-        at the first pass's stage end: both passes are one traced pass in a two-iteration
-        `lax.scan`, so the stage's solve is compiled once."""
-        thm0, wm0, T0, tor0, z0 = start
-
-        def one_pass(carry):
-            """Solve the stage with the explicit terms at `carry`'s (θ_m, ω_m, T); the next pass's."""
-            s, _, _, conv, thm_e, wm_e, T_e, _ = carry
-            P = stage_parameters(t1, hist, thm_e, wm_e, T_e, tor0, z0)
-            s, out, stuck, conv_k = _solve_step(P, s, solver.iterations)
-            r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
-            thm1 = theta_m(q1, tho_hist + hist[4] * wo1, t1)
-            return s, out, stuck, conv & conv_k, thm1, wm1, 0.5 * (T0 + T1), P["drive"]
-
-        # placeholders for the first pass's outputs, with the tangents and batch axes of the state
-        # (so that the scan is traced once, see `_tangent_dependence`)
-        zero = 0.0 * (s_guess + T0 + wm0 + thm_pred)
-        init = (s_guess, (zero,) * 8, jnp.zeros(jnp.shape(zero), dtype=bool), jnp.ones(jnp.shape(zero), dtype=bool),
-                thm_pred, wm0, T0, zero)
-        if not solver.corrector:
-            carry = one_pass(init)
-        else:
-            # Without a position- or load-dependent effect only a falling Stribeck term too steep to
-            # be implicit reads the predicted state; with both amplitudes ≤ 0 (friction rising with
-            # speed, as HD1's and HD2's) it is always implicit and the second pass would solve the
-            # same equation again: skipped. The predicate depends on the parameters alone, so under
-            # the experiment `vmap` it stays a branch.
-            needed = jnp.asarray(True) if explicit_state_terms else stribeck_may_lag
-
-            def body(c, k):
-                return jax.lax.cond((k == 0) | needed, one_pass, lambda c: c, c), None
-
-            carry, _ = jax.lax.scan(body, init, jnp.arange(2))
-        s, out, stuck, conv, *_, drive_t1 = carry
-        r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
-        wm1 = jnp.where(stuck, 0.0, wm1)
-        tho1 = tho_hist + hist[4] * wo1
-        A, wm_hist = hist[0], hist[1]
-        F1 = drive_t1 - T1 / N - A * (wm1 - wm_hist)  # friction, sliding or holding
-        return (q1, wm1, tho1, wo1, z1, s, T1, F1), tor1, conv
-
-    def step(state, t0):
-        """One TR-BDF2 step from t0 to t0 + h: a trapezoidal stage to t0 + γh, then BDF2 to t0 + h.
-
-        Both stages are one `stage` call in a two-iteration `lax.scan` (stage k = 0, 1; their
-        coefficients selected by k): the stage, the step's whole cost, is traced and compiled once
-        instead of twice."""
-        q0, wm0, tho0, wo0, z0, s0, T0, F0 = state
-        thm0 = theta_m(q0, tho0, t0)
-        tor0 = torsion_of(q0, thm0)
-        drive0 = electric(t0) + eff.periodic("cogging", thm0)
-
-        def one_stage(prev, k):
-            """Stage k from the end of the one before (k = 0: the step start; k = 1: t0 + γh)."""
-            (qp, wmp, thop, wop, zp, sp, Tp, _), torp = prev
-            first = k == 0
-            tp = t0 + jnp.where(first, 0.0, _GAMMA * h)
-            t1 = t0 + jnp.where(first, _GAMMA * h, h)
-            # trapezoidal stage: the start's forces enter through the histories; BDF2 stage on
-            # (t0, t0 + γh, t0 + h)
-            bh = jnp.where(first, 0.5 * _GAMMA * h, _C2 * h)
-            A = p.Jeff / bh
-            hist = (
-                A,
-                jnp.where(first, wm0 + (drive0 - T0 / N - F0) / A, _C1 * wmp - _C0 * wm0),
-                jnp.where(first, q0 + bh * (wm0 / N - wo0), _C1 * qp - _C0 * q0),
-                jnp.where(first, wo0 + bh * f * T0 / drive.load_inertia, _C1 * wop - _C0 * wo0),
-                bh,
-                bh * f / drive.load_inertia,
+        def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0):
+            """The stage equation's data: `hist` = (A, ω_m, q, ω_o history, bh, fh/J); the explicit
+            terms (position- and load-dependent) evaluated at the predicted stage end (θ_m1, ω_m1, T1)."""
+            A, wm_hist, q_hist, wo_hist, bh, fh_J = hist
+            pdf = 1.0 + eff.periodic("position_dependent_friction", thm1)
+            load = (jnp.abs(eff.load_dependent_friction.mu) * jnp.sqrt(T1 * T1 + 1e-6) / N
+                    if "load_dependent_friction" in eff.active else 0.0)
+            P: dict[str, Any] = dict(
+                alpha=p.alpha, K1=p.K1, Tst=p.Tst, N=N, A=A, bh=bh, fh_J=fh_J,
+                wm_hist=wm_hist, wo_hist=wo_hist, q_hist=q_hist, tor0=tor0, z0=z0,
+                Tvp=p.Tvp, Tvn=p.Tvn, Tssp1=p.Tssp1, Tssn1=p.Tssn1, Tss2=p.Tss2, vc=vc,
+                visc=viscous_factor(t1),
+                Tcp=p.Tsp * pdf + load,
+                Tcn=p.Tsn * pdf + load,
+                g_lag=jnp.exp(-((wm1 / p.Tss2) ** 2)),
+                e1=eff.periodic("kinematic_error", thm1) if ke else 0.0,
+                edot1=eff.periodic_rate("kinematic_error", thm1, wm1) if ke else 0.0,
+                drive=electric(t1) + eff.periodic("cogging", thm1),
             )
-            tho_hist = jnp.where(first, tho0 + bh * wo0, _C1 * thop - _C0 * tho0)
-            thmp = theta_m(qp, thop, tp)
-            thm_pred = predicted_angle(t1, t1 - tp, qp, thop, wop, thmp, wmp)
-            out, tor1, conv = stage(t1, hist, tho_hist, thm_pred, (thmp, wmp, Tp, torp, zp), sp)
-            return (out, tor1), conv
+            P = {k: jnp.asarray(v, dtype=float) for k, v in P.items()}
+            P["eff"] = eff
+            return P
 
-        (out, _), conv = jax.lax.scan(one_stage, (state, tor0), jnp.arange(2))
-        return out, jnp.all(conv)
+        def stage(t1, hist, tho_hist, thm_pred, start, s_guess):
+            """Solve one stage ending at t1; `start` = (θ_m, ω_m, T, torsion, z) at the step start, from
+            which the explicit terms are predicted (θ_m at the stage end: `thm_pred`).
+
+            The corrector's second pass is the same `_solve_step` as the first, with the explicit terms
+            at the first pass's stage end: both passes are one traced pass in a two-iteration
+            `lax.scan`, so the stage's solve is compiled once."""
+            thm0, wm0, T0, tor0, z0 = start
+
+            def one_pass(carry):
+                """Solve the stage with the explicit terms at `carry`'s (θ_m, ω_m, T); the next pass's."""
+                s, _, _, conv, thm_e, wm_e, T_e, _ = carry
+                P = stage_parameters(t1, hist, thm_e, wm_e, T_e, tor0, z0)
+                s, out, stuck, conv_k = _solve_step(P, s, solver.iterations)
+                r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
+                thm1 = theta_m(q1, tho_hist + hist[4] * wo1, t1)
+                return s, out, stuck, conv & conv_k, thm1, wm1, 0.5 * (T0 + T1), P["drive"]
+
+            # placeholders for the first pass's outputs, with the tangents and batch axes of the state
+            # (so that the scan is traced once, see `_tangent_dependence`)
+            zero = 0.0 * (s_guess + T0 + wm0 + thm_pred)
+            init = (s_guess, (zero,) * 8, jnp.zeros(jnp.shape(zero), dtype=bool), jnp.ones(jnp.shape(zero), dtype=bool),
+                    thm_pred, wm0, T0, zero)
+            if not solver.corrector:
+                carry = one_pass(init)
+            else:
+                # Without a position- or load-dependent effect only a falling Stribeck term too steep to
+                # be implicit reads the predicted state; with both amplitudes ≤ 0 (friction rising with
+                # speed, as HD1's and HD2's) it is always implicit and the second pass would solve the
+                # same equation again: skipped. The predicate depends on the parameters alone, so under
+                # the experiment `vmap` it stays a branch.
+                needed = jnp.asarray(True) if explicit_state_terms else stribeck_may_lag
+
+                def body(c, k):
+                    return jax.lax.cond((k == 0) | needed, one_pass, lambda c: c, c), None
+
+                carry, _ = jax.lax.scan(body, init, jnp.arange(2))
+            s, out, stuck, conv, *_, drive_t1 = carry
+            r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
+            wm1 = jnp.where(stuck, 0.0, wm1)
+            tho1 = tho_hist + hist[4] * wo1
+            A, wm_hist = hist[0], hist[1]
+            F1 = drive_t1 - T1 / N - A * (wm1 - wm_hist)  # friction, sliding or holding
+            return (q1, wm1, tho1, wo1, z1, s, T1, F1), tor1, conv
+
+        def step(state, t0):
+            """One TR-BDF2 step from t0 to t0 + h: a trapezoidal stage to t0 + γh, then BDF2 to t0 + h.
+
+            Both stages are one `stage` call in a two-iteration `lax.scan` (stage k = 0, 1; their
+            coefficients selected by k): the stage, the step's whole cost, is traced and compiled once
+            instead of twice."""
+            q0, wm0, tho0, wo0, z0, s0, T0, F0 = state
+            thm0 = theta_m(q0, tho0, t0)
+            tor0 = torsion_of(q0, thm0)
+            drive0 = electric(t0) + eff.periodic("cogging", thm0)
+
+            def one_stage(prev, k):
+                """Stage k from the end of the one before (k = 0: the step start; k = 1: t0 + γh)."""
+                (qp, wmp, thop, wop, zp, sp, Tp, _), torp = prev
+                first = k == 0
+                tp = t0 + jnp.where(first, 0.0, _GAMMA * h)
+                t1 = t0 + jnp.where(first, _GAMMA * h, h)
+                # trapezoidal stage: the start's forces enter through the histories; BDF2 stage on
+                # (t0, t0 + γh, t0 + h)
+                bh = jnp.where(first, 0.5 * _GAMMA * h, _C2 * h)
+                A = p.Jeff / bh
+                hist = (
+                    A,
+                    jnp.where(first, wm0 + (drive0 - T0 / N - F0) / A, _C1 * wmp - _C0 * wm0),
+                    jnp.where(first, q0 + bh * (wm0 / N - wo0), _C1 * qp - _C0 * q0),
+                    jnp.where(first, wo0 + bh * f * T0 / drive.load_inertia, _C1 * wop - _C0 * wo0),
+                    bh,
+                    bh * f / drive.load_inertia,
+                )
+                tho_hist = jnp.where(first, tho0 + bh * wo0, _C1 * thop - _C0 * tho0)
+                thmp = theta_m(qp, thop, tp)
+                thm_pred = predicted_angle(t1, t1 - tp, qp, thop, wop, thmp, wmp)
+                out, tor1, conv = stage(t1, hist, tho_hist, thm_pred, (thmp, wmp, Tp, torp, zp), sp)
+                return (out, tor1), conv
+
+            (out, _), conv = jax.lax.scan(one_stage, (state, tor0), jnp.arange(2))
+            return out, jnp.all(conv)
+
+        def start(y0, t0):
+            """The step state at the sample t0 from the plant state y0 = (q, ω_m, θ_o, ω_o)."""
+            q0, wm0, tho0, wo0 = y0[:4]
+            z0 = jnp.zeros_like(q0)
+            thm0 = theta_m(q0, tho0, t0)
+            rate0 = wm0 / N - wo0 + (eff.periodic_rate("kinematic_error", thm0, wm0) if ke else 0.0)
+            s0 = _signed_pow(rate0, p.alpha)
+            T0 = stiffness_torque(p.K1, torsion_of(q0, thm0), eff) + p.Tst * s0
+            # friction at the start: eq. 9 while sliding; at rest the holding torque (zero acceleration),
+            # within the breakaway interval
+            P0 = stage_parameters(t0, (1.0, wm0, q0, wo0, 0.0, 0.0), thm0, wm0, T0, 0.0, z0)
+            hold = P0["drive"] - T0 / N
+            F0 = jnp.where(
+                wm0 > 0, _branch_friction(wm0, 1.0, P0),
+                jnp.where(wm0 < 0, _branch_friction(wm0, -1.0, P0),
+                          jnp.clip(hold, _branch_friction(0.0 * wm0, -1.0, P0), _branch_friction(0.0 * wm0, 1.0, P0))),
+            )
+            return (q0, wm0, tho0, wo0, z0, s0, T0, F0)
+
+        return PlantSteps(start=start, step=step, theta_m=theta_m, torsion_of=torsion_of)
+
+    return bind
+
+
+def implicit_trajectory(
+    p,
+    drive,
+    exp,
+    y0,
+    geometry,
+    current,
+    effects: Effects,
+    vc,
+    dt,
+    solver: VelocityImplicit,
+):
+    """Step one experiment through its sample times with TR-BDF2 stages (`plant_steps`, see the
+    module docstring). Returns per-sample arrays (q, ω_m, θ_o, ω_o, torque T, torsion Δθ, θ_m),
+    whether every step's root converged, and the number of steps."""
+    m = solver.substeps
+    h = dt / m
+    steps = plant_steps(p, drive, exp.free, exp.start_time, geometry, effects, vc, h, solver)(current)
 
     def sample_interval(state, t0):
         def body(st, k):
-            return step(st, t0 + k * h)
+            return steps.step(st, t0 + k * h)
 
         state, conv = jax.lax.scan(body, state, jnp.arange(m, dtype=float))
         return state, (state, jnp.all(conv))
 
-    q0, wm0, tho0, wo0 = y0[:4]
-    z0 = jnp.zeros_like(q0)
-    thm0 = theta_m(q0, tho0, exp.time[0])
-    rate0 = wm0 / N - wo0 + (eff.periodic_rate("kinematic_error", thm0, wm0) if ke else 0.0)
-    s0 = _signed_pow(rate0, p.alpha)
-    T0 = stiffness_torque(p.K1, torsion_of(q0, thm0), eff) + p.Tst * s0
-    # friction at the start: eq. 9 while sliding; at rest the holding torque (zero acceleration),
-    # within the breakaway interval
-    P0 = stage_parameters(exp.time[0], (1.0, wm0, q0, wo0, 0.0, 0.0), thm0, wm0, T0, 0.0, z0)
-    hold = P0["drive"] - T0 / N
-    F0 = jnp.where(
-        wm0 > 0, _branch_friction(wm0, 1.0, P0),
-        jnp.where(wm0 < 0, _branch_friction(wm0, -1.0, P0),
-                  jnp.clip(hold, _branch_friction(0.0 * wm0, -1.0, P0), _branch_friction(0.0 * wm0, 1.0, P0))),
-    )
-    state0 = (q0, wm0, tho0, wo0, z0, s0, T0, F0)
+    state0 = steps.start(y0, exp.time[0])
     zero = _tangent_dependence(p, effects)
     state0 = tuple(jnp.asarray(x, dtype=float) + zero for x in state0)
     n = exp.time.shape[0]
@@ -491,6 +525,6 @@ def implicit_trajectory(
     _, (states, oks) = jax.lax.scan(sample_interval, state0, t_starts)
     states = jax.tree.map(lambda a, b: jnp.concatenate([jnp.asarray(a)[None], b]), state0, states)
     q, wm, tho, wo, z, s, T, _ = states
-    thm = theta_m(q, tho, exp.time, measured_out)
+    thm = steps.theta_m(q, tho, exp.time, geometry[3])
     oks = jnp.concatenate([jnp.array([True]), oks])
-    return (q, wm, tho, wo, T, torsion_of(q, thm), thm), oks, (n - 1) * m
+    return (q, wm, tho, wo, T, steps.torsion_of(q, thm), thm), oks, (n - 1) * m
