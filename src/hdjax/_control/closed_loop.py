@@ -20,10 +20,21 @@ The loop (SI units), at every sample instant $t_k = k\,T_s$ of the torque sensor
    $s\ln 2$ beyond it (`saturation_scale` $s$ in A);
 4. integrator with back-calculation anti-windup:
    $I_{k+1} = I_k + k_i T_s e_k + \beta\,(i_k - u_k)$;
-5. zero-order hold: the plant (`hdjax._plant.simulate`'s vector field, with any `hdjax.Effects`) runs from
-   $t_k$ to $t_{k+1}$ with the current $i_k$.
+5. zero-order hold: the plant (with any `hdjax.Effects`) runs from $t_k$ to $t_{k+1}$ with the
+   current $i_k$.
 
-Numerics (measured on HD2 at 1 kHz by `benchmarks/tune_numerics.py`, against 64 substeps): the plant
+The plant (`solver`): by default the fixed-step exact plant of `hdjax._plant.stepper` (TR-BDF2
+steps on the velocity level, Coulomb sticking and power-law damping without smoothing scales,
+derivatives by the implicit function theorem), `substeps` steps per sample interval. Where the
+held current jumps at $t_k$, a stuck motor's holding friction is taken again for the new current
+(`PlantSteps.with_friction`). Measured (2026-12-05, 2-core machine): the torque converges as the
+steps shrink (HD1 locked step 0.06 / 0.02 / 0.006 % of the amplitude at 2 / 4 / 8 steps against
+32; HD2 free sine 1.5 / 0.18 / 0.04 %; `tests/test_control.py`); the tuning cost and its gradient
+over 6 plants × 8 references of 500 samples take 0.16 s after compilation against 1.5 s on the
+smoothed Rodas3 plant with refinement, and compile in 15 s against 23 s; reverse-mode gradients
+match central differences to 1e-4. `solver="rodas3"` keeps the smoothed plant described next.
+
+Numerics of the smoothed plant (measured on HD2 at 1 kHz by `benchmarks/tune_numerics.py`, against 64 substeps): the plant
 is stiff (power-law damping $|\dot{\Delta\theta}|^{1/2}$ and the smoothed Coulomb step give
 Jacobian eigenvalues of $10^4$–$10^5\,\mathrm{s^{-1}}$), the input is constant on each sample
 interval, and the controller state changes only at the samples. So the loop is a `lax.scan` over
@@ -37,7 +48,7 @@ smooth function of the gains: reverse-mode gradients match central differences w
 aggressive PI on a free-output step, where the cost is rugged on that scale (nearly chaotic
 stick-slip), which is why `hdjax._workflows.tune` starts BFGS from a grid search.
 
-Refinement (`refine` > 1, the default): an interval whose embedded error estimate fails the gross
+Refinement (rodas3; `refine` > 1, the default): an interval whose embedded error estimate fails the gross
 check (error above 1 absolute scale + 10 % relative) is recomputed with `refine`x finer steps;
 `LoopTrajectory.refined` flags it. Under `vmap` both branches are always computed, so it costs
 `1 + refine` times the run time. Noise-free, it fired only at 1 substep in the benchmark, but with
@@ -57,6 +68,7 @@ from .._model.effects import Effects
 from .._model.paper import Drive, Parameters, Smoothing, _as_float, friction_torque
 from .._plant.rosenbrock import Rodas3
 from .._plant.simulate import _low_speed_friction, _outputs, _vector_field, state_size
+from .._plant.stepper import VelocityImplicit, plant_steps
 
 _REFINE_RTOL = 0.1  # relative part of the gross step-failure check (see the module doc)
 
@@ -222,7 +234,7 @@ class _Held(eqx.Module):
         return jnp.where(t < self.t_k, self.previous, self.value)
 
 
-def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing, refine=8):
+def _run_loop_rodas3(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing, refine=8):
     """The sampled loop shared by `closed_loop` and `relay_test`: measure at $t_k$, call
     `law(state, r_k, y_k, w_k) -> (state, current, command)`, hold the current over the interval
     and advance the plant by `substeps` fixed Rodas3 steps; an interval whose embedded error
@@ -292,6 +304,69 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
     )  # fmt: skip
 
 
+def _noise_samples(noise, n):
+    """The measurement noise sequences (N·m, rad/s), zeros where `noise` is None."""
+    if noise is None:
+        return jnp.zeros(n), jnp.zeros(n)
+    return tuple(jnp.broadcast_to(jnp.asarray(x, dtype=float), (n,)) for x in noise)
+
+
+def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing, refine=8,
+              solver: str = "velocity_implicit"):
+    """The sampled loop shared by `closed_loop` and `relay_test`: measure at $t_k$, call
+    `law(state, r_k, y_k, w_k) -> (state, current, command)`, hold the current over the interval
+    and advance the plant over it by `substeps` steps of `solver`: "velocity_implicit" (the
+    fixed-step exact plant, `hdjax._plant.stepper`) or "rodas3" (`_run_loop_rodas3`)."""
+    if solver == "rodas3":
+        return _run_loop_rodas3(law, law_state0, plant, reference, sample_period=sample_period, noise=noise,
+                                substeps=substeps, smoothing=smoothing, refine=refine)
+    if solver != "velocity_implicit":
+        raise ValueError(f"closed loop: `solver` must be 'velocity_implicit' or 'rodas3', got {solver!r}.")
+    p, drive, effects = plant.parameters, plant.drive, plant.effects
+    if "presliding_friction" in effects.active:
+        raise ValueError("closed loop: the velocity_implicit plant does not model `presliding_friction` (its exact "
+                         "sticking is that law's rigid limit); use solver='rodas3' for such a plant.")
+    ts = sample_period
+    r = reference.torque
+    n = r.shape[0]
+    nT, nw = _noise_samples(noise, n)
+    zero = jnp.zeros(())
+    h = ts / substeps
+    # eq. 9 with a fitted low-speed law (SPEC §4b) as in `simulate`: exact set-valued friction, or
+    # the creep ramp `low_speed_friction` fits
+    p_dyn, smoothing_dyn = _low_speed_friction(p, effects, smoothing)
+    vc = smoothing_dyn.velocity_scale if "low_speed_friction" in effects.active else 0.0
+    geometry = (zero, zero, zero, None)  # at rest at zero angles; the plant's own angle
+    plant_at = plant_steps(p_dyn, drive, reference.free, zero, geometry, effects, vc, h, VelocityImplicit(substeps=substeps))
+    state0 = plant_at(_Held(zero, zero, zero)).start((zero,) * 4, zero)
+
+    def step(carry, inputs):
+        st, law_state, i_prev = carry
+        k, r_k, nT_k, nw_k = inputs
+        t_k = k * ts
+        steps_prev = plant_at(_Held(t_k, i_prev, i_prev))
+        T = st[6]
+        y_meas = T + effects.periodic("torque_sensor_ripple", steps_prev.theta_m(st[0], st[2], t_k)) + nT_k
+        w_meas = st[1] + nw_k
+        law_state, i, u = law(law_state, r_k, y_meas, w_meas)
+        steps = plant_at(_Held(t_k, i_prev, i))
+        # the new current acts from t_k on: a stuck motor's holding friction follows it
+        st1 = steps.with_friction(st, t_k)
+
+        def sub(x, j):
+            return steps.step(x, t_k + j * h)
+
+        st_next, conv = jax.lax.scan(sub, st1, jnp.arange(substeps, dtype=float))
+        return (st_next, law_state, i), (T, y_meas, st[1], st[3], i, u, ~jnp.all(conv))
+
+    ks = jnp.arange(n, dtype=float)
+    _, (T, y_meas, wm, wo, i, u, bad) = jax.lax.scan(step, (state0, law_state0, zero), (ks, r, nT, nw))
+    return LoopTrajectory(
+        time=ks * ts, reference=r, torque=T, measured_torque=y_meas, motor_velocity=wm, output_velocity=wo,
+        current=i, command=u, refined=bad,
+    )  # fmt: skip
+
+
 def closed_loop(
     gains: TorqueGains,
     plant: Plant,
@@ -299,9 +374,10 @@ def closed_loop(
     *,
     controller: TorqueController,
     noise: tuple[ArrayLike, ArrayLike] | None = None,
-    substeps: int = 1,
+    substeps: int = 2,
     refine: int = 4,
     smoothing: Smoothing = Smoothing(),
+    solver: str = "velocity_implicit",
 ) -> LoopTrajectory:
     """Simulate the sampled torque loop on `plant` following `reference`; differentiable in all
     array arguments (`jax.grad`, `jax.jacfwd`) and `vmap`-able over plants, references and noise.
@@ -314,11 +390,15 @@ def closed_loop(
     - `controller`: `TorqueController` (feed-forward model, limits, sample period).
     - `noise`: optional `(torque_noise, velocity_noise)` sample sequences (N·m, rad/s) added to
       the measurements; default none.
-    - `substeps`: fixed Rodas3 steps per sample interval (see the module doc).
-    - `refine`: if > 1, an interval whose step fails the gross error check is redone with
-      `refine`x more steps; either way `LoopTrajectory.refined` marks it (see the module doc;
+    - `substeps`: fixed plant steps per sample interval (see the module doc).
+    - `refine` (rodas3 only): if > 1, an interval whose step fails the gross error check is redone
+      with `refine`x more steps; either way `LoopTrajectory.refined` marks it (see the module doc;
       needed with noisy measurements on HD2).
-    - `smoothing`: the plant's smoothing scales (`Smoothing`).
+    - `smoothing`: the smoothing scales of the rodas3 plant (`Smoothing`; the velocity_implicit
+      plant is exact and reads only `low_speed_friction`'s scale from it).
+    - `solver`: "velocity_implicit" (the default: `hdjax.VelocityImplicit`'s TR-BDF2 steps, exact
+      sticking and power-law damping, `LoopTrajectory.refined` marking an interval where a root did
+      not converge) or "rodas3" (the smoothed plant, see the module doc).
 
     **Returns:** a `LoopTrajectory`. The plant starts at rest (zero torsion, velocity and angle).
     """
@@ -354,7 +434,7 @@ def closed_loop(
     zero = jnp.zeros(())
     return _run_loop(
         law, (zero, zero, zero, jnp.ones(()), zero, zero), plant, reference, sample_period=ts, noise=noise,
-        substeps=substeps, smoothing=smoothing, refine=refine,
+        substeps=substeps, smoothing=smoothing, refine=refine, solver=solver,
     )  # fmt: skip
 
 
@@ -388,8 +468,9 @@ def relay_test(
     amplitude: float,
     sample_period: float = 1e-3,
     duration: float = 1.0,
-    substeps: int = 1,
+    substeps: int = 2,
     smoothing: Smoothing = Smoothing(),
+    solver: str = "velocity_implicit",
 ) -> LoopTrajectory:
     r"""Åström–Hägglund relay experiment with the output locked: current
     $i = i_0 + d\,\mathrm{sign}(r - y)$ about the torque `level` $r$ (N·m), with
@@ -405,7 +486,8 @@ def relay_test(
         return state, i, i
 
     return _run_loop(
-        law, jnp.zeros(()), plant, ref, sample_period=sample_period, noise=None, substeps=substeps, smoothing=smoothing
+        law, jnp.zeros(()), plant, ref, sample_period=sample_period, noise=None, substeps=substeps, smoothing=smoothing,
+        solver=solver,
     )
 
 
@@ -510,16 +592,18 @@ def batch_cost(
     scales: Float[Array, " reference"],
     noise: tuple[Float[Array, "reference time"], Float[Array, "reference time"]] | None = None,
     effort_weight: float = 0.0,
-    substeps: int = 1,
+    substeps: int = 2,
     refine: int = 4,
     smoothing: Smoothing = Smoothing(),
+    solver: str = "velocity_implicit",
 ) -> tuple[Float[Array, "plant reference"], Float[Array, "plant reference"]]:
     """Tracking and tuning cost of every (plant, reference) pair, `vmap`ped over both.
 
     `plants` is a `Plant` whose `parameters` leaves carry a leading `plant` axis (drive and
     effects shared); `references` carries a leading `reference` axis, `scales` (N·m) normalise
     each reference's error, `noise` holds measurement-noise sequences per reference (the same for
-    every plant: common random numbers); `substeps`, `refine` as in `closed_loop`. Tracking cost: $\\overline{(r-T)^2}/s^2$ (-); tuning cost
+    every plant: common random numbers); `substeps`, `refine`, `smoothing`, `solver` as in `closed_loop`.
+    Tracking cost: $\\overline{(r-T)^2}/s^2$ (-); tuning cost
     adds `effort_weight`·$\\overline{(\\Delta i)^2}/i_{max}^2$ (-), which charges current chatter.
     Returns `(tracking, tuning)`, both of shape (plant, reference)."""
     if noise is None:
@@ -529,7 +613,7 @@ def batch_cost(
     def one(params, ref, scale, nT, nw):
         traj = closed_loop(
             gains, Plant(params, plants.drive, plants.effects), ref, controller=controller, noise=(nT, nw),
-            substeps=substeps, refine=refine, smoothing=smoothing,
+            substeps=substeps, refine=refine, smoothing=smoothing, solver=solver,
         )  # fmt: skip
         track = jnp.mean((traj.reference - traj.torque) ** 2) / scale**2
         di = jnp.diff(traj.current)

@@ -297,13 +297,15 @@ class PlantSteps(NamedTuple):
     """The stepper's functions for one plant with the current bound (`plant_steps(...)(current)`):
     `start(y0, t0)` the step state at the sample `t0` from the plant state `y0` = (q, ω_m, θ_o,
     ω_o); `step(state, t0)` one TR-BDF2 step of length h from `t0`, returning the new state and
-    whether its roots converged; `theta_m(q, θ_o, t[, angles])` the wave-generator angle (rad);
+    whether its roots converged; `with_friction(state, t0)` the state with its friction taken again
+    at t0 (after a jump of the drive); `theta_m(q, θ_o, t[, angles])` the wave-generator angle (rad);
     `torsion_of(q, θ_m)` the true torsion (rad). The step state is (q, ω_m, θ_o, ω_o, z, s, T, F):
     kinematic torsion, velocities and output angle, the Dahl state, the damping unknown, the
     transmitted torque (N·m) and the friction (N·m)."""
 
     start: Callable
     step: Callable
+    with_friction: Callable
     theta_m: Callable
     torsion_of: Callable
 
@@ -467,16 +469,13 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             (out, _), conv = jax.lax.scan(one_stage, (state, tor0), jnp.arange(2))
             return out, jnp.all(conv)
 
-        def start(y0, t0):
-            """The step state at the sample t0 from the plant state y0 = (q, ω_m, θ_o, ω_o)."""
-            q0, wm0, tho0, wo0 = y0[:4]
-            z0 = jnp.zeros_like(q0)
+        def with_friction(state, t0):
+            """`state` with its friction F taken at t0 for the bound current: eq. 9 while sliding; at
+            rest the holding torque (zero acceleration), within the breakaway interval. Where the
+            drive jumps at t0 (a sampled loop's held current) this is its right limit, the friction
+            a stuck motor meets as the new current acts."""
+            q0, wm0, tho0, wo0, z0, s0, T0, _ = state
             thm0 = theta_m(q0, tho0, t0)
-            rate0 = wm0 / N - wo0 + (eff.periodic_rate("kinematic_error", thm0, wm0) if ke else 0.0)
-            s0 = _signed_pow(rate0, p.alpha)
-            T0 = stiffness_torque(p.K1, torsion_of(q0, thm0), eff) + p.Tst * s0
-            # friction at the start: eq. 9 while sliding; at rest the holding torque (zero acceleration),
-            # within the breakaway interval
             P0 = stage_parameters(t0, (1.0, wm0, q0, wo0, 0.0, 0.0), thm0, wm0, T0, 0.0, z0)
             hold = P0["drive"] - T0 / N
             F0 = jnp.where(
@@ -486,7 +485,17 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             )
             return (q0, wm0, tho0, wo0, z0, s0, T0, F0)
 
-        return PlantSteps(start=start, step=step, theta_m=theta_m, torsion_of=torsion_of)
+        def start(y0, t0):
+            """The step state at the sample t0 from the plant state y0 = (q, ω_m, θ_o, ω_o)."""
+            q0, wm0, tho0, wo0 = y0[:4]
+            z0 = jnp.zeros_like(q0)
+            thm0 = theta_m(q0, tho0, t0)
+            rate0 = wm0 / N - wo0 + (eff.periodic_rate("kinematic_error", thm0, wm0) if ke else 0.0)
+            s0 = _signed_pow(rate0, p.alpha)
+            T0 = stiffness_torque(p.K1, torsion_of(q0, thm0), eff) + p.Tst * s0
+            return with_friction((q0, wm0, tho0, wo0, z0, s0, T0, 0.0 * T0), t0)
+
+        return PlantSteps(start=start, step=step, with_friction=with_friction, theta_m=theta_m, torsion_of=torsion_of)
 
     return bind
 

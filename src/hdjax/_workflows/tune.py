@@ -99,12 +99,13 @@ DEFAULTS = {
     "ms_max": 1.7,  # sensitivity peak above which the margin term acts
     "margin_weight": 0.2,  # weight of the squared Ms excess in the tuning cost
     "model_pi_ms": 1.4,  # Ms bound of the model-based (MIGO) PI baseline
-    "substeps": 2,  # Rodas3 steps per sample in the tuning model
-    "velocity_scale": 0.03,  # rad/s, friction sign() smoothing of the tuning model
-    "torsion_rate_scale": 1e-3,  # rad/s, |rate|^alpha smoothing of the tuning model
+    "solver": "velocity_implicit",  # plant of the tuning model and of a validation on it: the fixed-step exact plant, or "rodas3" (smoothed)
+    "substeps": 2,  # plant steps per sample in the tuning model
+    "velocity_scale": 0.03,  # rad/s, friction sign() smoothing of the tuning model (rodas3 only)
+    "torsion_rate_scale": 1e-3,  # rad/s, |rate|^alpha smoothing of the tuning model (rodas3 only)
     "effort_weight": 0.01,
     "relay_amplitude": 0.25,  # relay amplitude / current limit
-    "rig_substeps": 16,  # Rodas3 steps per sample when validating on the identified model (user data)
+    "rig_substeps": 16,  # plant steps per sample when validating on the identified model (user data)
     "validation_runs": 5,  # validation runs with independent noise, averaged (one run's cost varies by up to ~2x)
 }
 REFERENCE_NAMES = ("locked_step", "locked_sine", "free_step", "free_sine")
@@ -127,6 +128,8 @@ def _options(config: dict) -> dict:
     for k in ("plants", "max_steps", "substeps", "rig_substeps", "starts", "validation_runs", "noise_realisations"):
         if not isinstance(out[k], int) or out[k] < 1:
             raise ValueError(f"config `tune.{k}` must be a positive integer, got {out[k]!r}.")
+    if out["solver"] not in ("velocity_implicit", "rodas3"):
+        raise ValueError(f"config `tune.solver` must be one of ['velocity_implicit', 'rodas3'], got {out['solver']!r}.")
     f = out["start_factors"]
     if not isinstance(f, (list, tuple)) or not f or not all(isinstance(x, (int, float)) and x > 0 for x in f):
         raise ValueError(f"config `tune.start_factors` must be a non-empty list of positive numbers, got {f!r}.")
@@ -391,7 +394,8 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
 
     log(f"[4/6] robust tuning: {opts['plants']} plant sets x {len(refs)} references (vmap) + Ms terms on {len(loop_labels)} linearised loops")
     plants = Plant(plant_sets, drive, effects)
-    kw: dict[str, Any] = dict(controller=ctrl, scales=jnp.tile(scales, K), noise=noise_all, substeps=int(opts["substeps"]), smoothing=sm)
+    kw: dict[str, Any] = dict(controller=ctrl, scales=jnp.tile(scales, K), noise=noise_all, substeps=int(opts["substeps"]), smoothing=sm,
+                          solver=opts["solver"])
     parts_jit, cost_fn, total = _objective(plants, R_cost, kw, K, len(refs), z, Pall, loop_labels, ts, df, opts)
     t0 = time.time()
     search = _start_search(_start_candidates(zn, model_pi, kp_m, ki_m, opts), total, margins, log)
@@ -488,7 +492,8 @@ def _relay_zn(nominal_plant: Plant, ref_info, opts: dict, ilim: float, ts: float
     Ziegler–Nichols PI from its limit cycle, with a note when that cycle is the sampled loop's own."""
     level = 0.5 * ref_info[0]["amplitude"]
     d = float(opts["relay_amplitude"]) * ilim
-    relay = jax.jit(lambda pl: relay_test(pl, level=level, amplitude=d, sample_period=ts, duration=1.0, smoothing=sm))(nominal_plant)
+    relay = jax.jit(lambda pl: relay_test(pl, level=level, amplitude=d, sample_period=ts, duration=1.0, smoothing=sm,
+                                          solver=opts["solver"]))(nominal_plant)
     zn, relay_info = ziegler_nichols_pi(relay, level=level, amplitude=d)
     relay_info.update({"level_Nm": level, "relay_amplitude_A": d})
     if relay_info["ultimate_period_s"] < 4.5 * ts:
@@ -668,7 +673,7 @@ def _simulate_tuned(tuned: TorqueGains, nominal_plant: Plant, R, noise, ctrl: To
     realisation (for the figures)."""
     return jax.jit(
         lambda g: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b),
-                                                       substeps=int(opts["substeps"]), smoothing=sm))(
+                                                       substeps=int(opts["substeps"]), smoothing=sm, solver=opts["solver"]))(
             R, noise[0], noise[1]
         )
     )(tuned)
@@ -760,6 +765,7 @@ def _tuning_section(opts: dict, K: int, sigma, sm: Smoothing, search, start_best
         "plants": int(opts["plants"]),
         "noise_realisations": K,
         "noise_sigma": {"torque": sigma[0], "motor_velocity": sigma[1]},
+        "solver": opts["solver"],
         "substeps": int(opts["substeps"]),
         "smoothing": {"velocity_scale": sm.velocity_scale, "torsion_rate_scale": sm.torsion_rate_scale},
         "effort_weight": float(opts["effort_weight"]),
@@ -808,10 +814,11 @@ def _validate_bench(bench, gains: dict, refs, ctrl: TorqueController, *, seed: i
 def _validate_model(nominal_plant: Plant, gains: dict, R, ctrl: TorqueController, sigma, n, opts, *, seeds) -> list:
     """Every controller on the identified model, one run per noise seed: [(traj, description)]."""
     sub = int(opts["rig_substeps"])
-    run = jax.jit(lambda g, nT, nw: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b), substeps=sub))(
+    run = jax.jit(lambda g, nT, nw: jax.vmap(lambda r, a, b: closed_loop(g, nominal_plant, r, controller=ctrl, noise=(a, b), substeps=sub,
+                                                                           solver=opts["solver"]))(
         R, nT, nw))  # fmt: skip
     desc = ("this dataset has no truth.yaml written by hdjax._testbench.independent, so the controllers are "
-            f"validated on the identified model ({sub} Rodas3 substeps per sample, estimated sensor noise); this is not a "
+            f"validated on the identified model ({sub} {opts['solver']} substeps per sample, estimated sensor noise); this is not a "
             "test on hardware: run the tuned gains on the real drive")  # fmt: skip
     out = []
     for seed in seeds:
