@@ -232,18 +232,20 @@ def test_diagnose_solver_option_builds_the_named_simulator():
 
 
 def test_sensitivity_solver_option_builds_the_named_simulator():
-    """`sensitivity.solver` picks the sensitivity and ablation numerics: adaptive Rodas3 at `rtol`
-    with its step budget `max_steps` (the default) or the fixed-step stepper at `substeps`; a bad
-    value names its key."""
+    """`sensitivity.solver` picks the sensitivity and ablation numerics: the fixed-step stepper at
+    `substeps` (the default since 2026-12-05) or adaptive Rodas3 at `rtol` with its step budget
+    `max_steps`; a bad value names its key."""
     import hdjax
     from hdjax._workflows.sensitivity import DEFAULTS, workflow_simulator
 
     opts = dict(DEFAULTS)
     sim = workflow_simulator(opts)
-    assert isinstance(sim.solver, hdjax.Rodas3) and sim.rtol == opts["rtol"] == 1e-4 and sim.max_steps == 20_000
+    assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.substeps == opts["substeps"] == 4
     sim = workflow_simulator({**opts, "solver": "velocity_implicit", "substeps": 8})
     assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.substeps == 8
-    sim = workflow_simulator({**opts, "rtol": "1e-5", "max_steps": 5000})
+    sim = workflow_simulator({**opts, "solver": "rodas3"})
+    assert isinstance(sim.solver, hdjax.Rodas3) and sim.rtol == opts["rtol"] == 1e-4 and sim.max_steps == 20_000
+    sim = workflow_simulator({**opts, "solver": "rodas3", "rtol": "1e-5", "max_steps": 5000})
     assert sim.rtol == 1e-5 and sim.max_steps == 5000
     with pytest.raises(ValueError, match=r"sensitivity\.solver.*velocity_implicit"):
         workflow_simulator({**opts, "solver": "ros34pw2"})

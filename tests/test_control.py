@@ -100,6 +100,8 @@ def test_bad_options_are_refused_with_the_field_named():
         _options({"tune": {"plantz": 3}})
     with pytest.raises(ValueError, match=r"tune.current_limit.*positive"):
         _options({"tune": {"current_limit": -1.0}})
+    with pytest.raises(ValueError, match=r"tune\.solver.*velocity_implicit"):
+        _options({"tune": {"solver": "euler"}})
     with pytest.raises(ValueError, match=r"tune.fit.*does not exist"):
         from hdjax._workflows.tune import _find_fit
 
