@@ -6,18 +6,18 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from hdjax import Plant, Smoothing, TorqueController, TorqueGains, closed_loop, step_reference, tracking_cost
+from hdjax import Plant, TorqueController, TorqueGains, closed_loop, step_reference, tracking_cost
 from hdjax.rig import station_hd1
 
 st = station_hd1()
 plant = Plant(st.truth, st.drive)
 controller = TorqueController(friction=st.truth, drive=st.drive, sample_period=1e-3, current_limit=6.0)
 reference = step_reference(15.0, duration=0.2)  # 15 N·m step, output locked
-smoothing = Smoothing(velocity_scale=0.03, torsion_rate_scale=1e-3)  # tuning-model smoothing (see hdjax._control.closed_loop)
 
 
 def cost(kp, ki):
-    traj = closed_loop(TorqueGains(kp=kp, ki=ki), plant, reference, controller=controller, substeps=2, smoothing=smoothing)
+    # the exact plant (fixed-step velocity-implicit steps, 2 per sample; solver="rodas3" for the smoothed one)
+    traj = closed_loop(TorqueGains(kp=kp, ki=ki), plant, reference, controller=controller, substeps=2)
     return tracking_cost(traj, scale=15.0)
 
 
