@@ -181,8 +181,8 @@ def test_step_metrics_refuse_an_empty_window():
 def test_closed_loop_on_the_exact_plant_converges_as_the_step_shrinks():
     """The loop's default plant is the fixed-step exact one (`hdjax.VelocityImplicit`'s TR-BDF2
     steps, the current held over each sample interval). Its torque converges as the steps per
-    sample grow, against 32 (measured: HD1 locked step 0.06 / 0.02 / 0.006 % of the amplitude at
-    2 / 4 / 8; HD2 free sine 1.5 / 0.18 / 0.04 %), and no root fails. The smoothed Rodas3 plant is
+    sample grow, against 32 (measured against 64: HD1 locked step 0.06 / 0.02 / 0.006 % of the
+    amplitude at 2 / 4 / 8; HD2 free sine 1.5 / 0.18 / 0.04 %), and no root fails. The smoothed Rodas3 plant is
     another model: on HD2's small locked sine, where the motor sticks and slips, it differs from
     the exact one by more than the amplitude (the reason the tuning model moved)."""
     from helpers import hd2
