@@ -234,6 +234,24 @@ class _Held(eqx.Module):
         return jnp.where(t < self.t_k, self.previous, self.value)
 
 
+def _noise_samples(noise, n):
+    """The measurement noise sequences (N·m, rad/s), zeros where `noise` is None."""
+    if noise is None:
+        return jnp.zeros(n), jnp.zeros(n)
+    return tuple(jnp.broadcast_to(jnp.asarray(x, dtype=float), (n,)) for x in noise)
+
+
+def _scan_loop(step, carry0, ts, r, nT, nw) -> LoopTrajectory:
+    """`lax.scan` of the loop's sample step `step(carry, (k, r_k, nT_k, nw_k))` over the reference
+    `r` (sample period `ts`, s) and the noise samples, into a `LoopTrajectory`."""
+    ks = jnp.arange(r.shape[0], dtype=float)
+    _, (T, y_meas, wm, wo, i, u, bad) = jax.lax.scan(step, carry0, (ks, r, nT, nw))
+    return LoopTrajectory(
+        time=ks * ts, reference=r, torque=T, measured_torque=y_meas, motor_velocity=wm, output_velocity=wo,
+        current=i, command=u, refined=bad,
+    )  # fmt: skip
+
+
 def _run_loop_rodas3(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing, refine=8):
     """The sampled loop shared by `closed_loop` and `relay_test`: measure at $t_k$, call
     `law(state, r_k, y_k, w_k) -> (state, current, command)`, hold the current over the interval
@@ -243,11 +261,7 @@ def _run_loop_rodas3(law, law_state0, plant: Plant, reference: Reference, *, sam
     ts = sample_period
     r = reference.torque
     n = r.shape[0]
-    if noise is None:
-        nT = jnp.zeros(n)
-        nw = jnp.zeros(n)
-    else:
-        nT, nw = (jnp.broadcast_to(jnp.asarray(x, dtype=float), (n,)) for x in noise)
+    nT, nw = _noise_samples(noise, n)
     zero = jnp.zeros(())
     y0 = (zero,) * state_size(effects)  # at rest; the Dahl and presliding states relaxed
     geometry = (zero, zero, zero, None)
@@ -296,19 +310,7 @@ def _run_loop_rodas3(law, law_state0, plant: Plant, reference: Reference, *, sam
         y_next = jax.tree.map(lambda a, b: jnp.where(bad, b, jnp.where(jnp.isfinite(a), a, 0.0)), y_a, y_b)
         return (y_next, law_state, i), (T, y_meas, y[1], y[3], i, u, bad)
 
-    ks = jnp.arange(n, dtype=float)
-    _, (T, y_meas, wm, wo, i, u, bad) = jax.lax.scan(step, (y0, law_state0, zero), (ks, r, nT, nw))
-    return LoopTrajectory(
-        time=ks * ts, reference=r, torque=T, measured_torque=y_meas, motor_velocity=wm, output_velocity=wo,
-        current=i, command=u, refined=bad,
-    )  # fmt: skip
-
-
-def _noise_samples(noise, n):
-    """The measurement noise sequences (N·m, rad/s), zeros where `noise` is None."""
-    if noise is None:
-        return jnp.zeros(n), jnp.zeros(n)
-    return tuple(jnp.broadcast_to(jnp.asarray(x, dtype=float), (n,)) for x in noise)
+    return _scan_loop(step, (y0, law_state0, zero), ts, r, nT, nw)
 
 
 def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing, refine=8,
@@ -359,12 +361,7 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
         st_next, conv = jax.lax.scan(sub, st1, jnp.arange(substeps, dtype=float))
         return (st_next, law_state, i), (T, y_meas, st[1], st[3], i, u, ~jnp.all(conv))
 
-    ks = jnp.arange(n, dtype=float)
-    _, (T, y_meas, wm, wo, i, u, bad) = jax.lax.scan(step, (state0, law_state0, zero), (ks, r, nT, nw))
-    return LoopTrajectory(
-        time=ks * ts, reference=r, torque=T, measured_torque=y_meas, motor_velocity=wm, output_velocity=wo,
-        current=i, command=u, refined=bad,
-    )  # fmt: skip
+    return _scan_loop(step, (state0, law_state0, zero), ts, r, nT, nw)
 
 
 def closed_loop(
