@@ -217,3 +217,16 @@ def test_closed_loop_refuses_presliding_friction_on_the_exact_plant():
     eff = Plant(plant.parameters, plant.drive, Effects().with_values("presliding_friction", presliding=0.5))
     with pytest.raises(ValueError, match="presliding_friction"):
         closed_loop(TorqueGains(kp=0.3, ki=100.0), eff, step_reference(1.0, duration=0.01), controller=ctrl)
+
+
+def test_tune_moves_a_presliding_model_to_the_smoothed_plant_and_says_so():
+    """The exact plant does not model `presliding_friction`; an extended model with it is tuned on
+    `rodas3`, with a note, instead of failing deep inside the loop."""
+    from hdjax._workflows.tune import _plant_solver
+
+    notes = []
+    eff = Effects().with_values("presliding_friction", presliding=0.5)
+    opts = _plant_solver(dict(_options({})), eff, notes, lambda *_: None)
+    assert opts["solver"] == "rodas3" and "presliding_friction" in notes[0]
+    assert _plant_solver(dict(_options({})), Effects(), [], print)["solver"] == "velocity_implicit"
+    assert _plant_solver(dict(_options({"tune": {"solver": "rodas3"}})), eff, [], print)["solver"] == "rodas3"
