@@ -67,7 +67,7 @@ from .._fit.parameterisation import Entry, Parameterisation, parameterisation
 from .._model.effects import Effects
 from .._model.paper import Drive, Parameters, Smoothing, _as_float, friction_torque
 from .._plant.rosenbrock import Rodas3
-from .._plant.simulate import _low_speed_friction, _outputs, _vector_field, state_size
+from .._plant.simulate import _low_speed_friction, _outputs, _vector_field, state_size, stepper_friction
 from .._plant.stepper import VelocityImplicit, plant_steps
 
 _REFINE_RTOL = 0.1  # relative part of the gross step-failure check (see the module doc)
@@ -334,21 +334,19 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
     nT, nw = _noise_samples(noise, n)
     zero = jnp.zeros(())
     h = ts / substeps
-    # eq. 9 with a fitted low-speed law (SPEC §4b) as in `simulate`: exact set-valued friction, or
-    # the creep ramp `low_speed_friction` fits
-    p_dyn, smoothing_dyn = _low_speed_friction(p, effects, smoothing)
-    vc = smoothing_dyn.velocity_scale if "low_speed_friction" in effects.active else 0.0
+    # eq. 9 with a fitted low-speed law (SPEC §4b) as in `simulate`
+    p_dyn, vc = stepper_friction(p, effects, smoothing)
     geometry = (zero, zero, zero, None)  # at rest at zero angles; the plant's own angle
     plant_at = plant_steps(p_dyn, drive, reference.free, zero, geometry, effects, vc, h, VelocityImplicit(substeps=substeps))
-    state0 = plant_at(_Held(zero, zero, zero)).start((zero,) * 4, zero)
+    at_rest = plant_at(_Held(zero, zero, zero))  # its angle does not depend on the current
+    state0 = at_rest.start((zero,) * 4, zero)
 
     def step(carry, inputs):
         st, law_state, i_prev = carry
         k, r_k, nT_k, nw_k = inputs
         t_k = k * ts
-        steps_prev = plant_at(_Held(t_k, i_prev, i_prev))
         T = st[6]
-        y_meas = T + effects.periodic("torque_sensor_ripple", steps_prev.theta_m(st[0], st[2], t_k)) + nT_k
+        y_meas = T + effects.periodic("torque_sensor_ripple", at_rest.theta_m(st[0], st[2], t_k)) + nT_k
         w_meas = st[1] + nw_k
         law_state, i, u = law(law_state, r_k, y_meas, w_meas)
         steps = plant_at(_Held(t_k, i_prev, i))

@@ -337,6 +337,14 @@ def _low_speed_friction(p: Parameters, effects: Effects, smoothing: Smoothing):
     return eqx.tree_at(lambda q: q.Tss2, p, p.Tss2 * jnp.exp(effects.low_speed_friction.stribeck_scale)), smoothing
 
 
+def stepper_friction(p: Parameters, effects: Effects, smoothing: Smoothing):
+    """The parameters and creep-ramp width `vc` (rad/s) of the fixed-step stepper's friction:
+    exact set-valued Coulomb friction (vc = 0), unless `low_speed_friction` fits a ramp width and
+    a Stribeck velocity (`_low_speed_friction`). Shared by `simulate` and the sampled loop."""
+    p_dyn, smoothing_dyn = _low_speed_friction(p, effects, smoothing)
+    return p_dyn, (smoothing_dyn.velocity_scale if "low_speed_friction" in effects.active else 0.0)
+
+
 def _first_order_lag(x: Float[Array, " time"], tau, dt) -> Float[Array, " time"]:
     """First-order low-pass (time constant `tau` s, backward-Euler discretisation
     y[n] = a·y[n−1] + (1−a)·x[n], a = τ/(τ+Δt)), started at y[0] = x[0]. Identity at τ = 0, with
@@ -635,9 +643,7 @@ def _simulate_implicit(p, drive, exp, y0, th_m0, current, dt, effects, simulator
     # the stepper reads the measured angle only where a periodic term acts at it (as the adaptive
     # plant's vector field); the reported angle is the measured one either way
     geometry = (y0[0], y0[2], th_m0, measured)
-    # exact set-valued Coulomb friction (vc = 0), unless `low_speed_friction` fits a ramp width
-    p_dyn, smoothing_dyn = _low_speed_friction(p, effects, simulator.smoothing)
-    vc = smoothing_dyn.velocity_scale if "low_speed_friction" in effects.active else 0.0
+    p_dyn, vc = stepper_friction(p, effects, simulator.smoothing)
     (q, wm, th_o, wo, T, torsion, th_m), ok, n_steps = implicit_trajectory(
         p_dyn, drive, exp, y0, geometry, current, effects, vc, dt, simulator.solver
     )
