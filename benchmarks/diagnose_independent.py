@@ -12,7 +12,7 @@ the time per dataset.
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
 [--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]
 [--low-speed lugre] [--noise per_record] [--viscous-exponent 0.7] [--no-physical-sign] [--consistency-any-mode]
-[--negligible-record-loss 0] [--angle simulated|measured] [--substeps 4]`.
+[--negligible-record-loss 0] [--angle simulated|measured] [--substeps 4] [--jacobian-substeps 2]`.
 
 `--low-speed lugre` and `--noise per_record` draw the datasets from a variant of the bench (a LuGre
 low-speed law with a stiction bump instead of exact stick–slip; sensor noise scaled with each
@@ -152,6 +152,9 @@ def main() -> int:
     ap.add_argument("--angle", default=None, choices=("simulated", "measured"),
                     help="the wave-generator angle of the periodic terms: the simulated one, or the measured one "
                          "(`Simulator.measured_angle`; default: the package's)")
+    ap.add_argument("--jacobian-substeps", type=int, default=None,
+                    help="the Jacobians (Gauss-Newton directions and predicted gains) on the fixed-step plant at this "
+                         "many substeps (default: the simulations' own)")
     ap.add_argument("--substeps", type=int, default=None,
                     help="simulate on the fixed-step `VelocityImplicit` plant with this many steps per sample "
                          "(default: the package's diagnosis solver)")
@@ -162,6 +165,7 @@ def main() -> int:
         simulator_option = {"simulator": Simulator(rtol=1e-6, atol=1e-8, measured_angle=args.angle != "simulated", **solver)}
     rule_options = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
+    jacobian_options = {} if args.jacobian_substeps is None else {"jacobian_substeps": args.jacobian_substeps}
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"
     only = None if args.seeds is None else {int(x) for x in args.seeds.split(",")}
     rows = []
@@ -180,7 +184,7 @@ def main() -> int:
         paper = identify_paper(exps, ds.drive)
         t_paper = time.perf_counter() - t0
         d = diagnose(paper.parameters(), ds.drive, exps, readapt_after_form=not args.no_readapt_after_form,
-                     two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver,
+                     two_stage_periodic=not args.one_stage_periodic, jacobian_solver=jacobian_solver, **jacobian_options,
                      consistency_in=consistency_in, physical_sign=not args.no_physical_sign, **rule_options, **simulator_option,
                      log=print if args.log else (lambda *_: None))
         dt = time.perf_counter() - t0
@@ -193,6 +197,7 @@ def main() -> int:
                "bench": {"low_speed": args.low_speed, "noise": args.noise, "viscous_exponent": args.viscous_exponent},
                "physical_sign": not args.no_physical_sign,
                "consistency_in": consistency_in, **rule_options, "angle": args.angle or "default", "substeps": args.substeps,
+               "jacobian_substeps": args.jacobian_substeps,
                "stages_s": {"paper_identification": round(t_paper, 1), **{k: round(v, 1) for k, v in d.timing.items()}}}
         rows.append(row)
         print(json.dumps(row), flush=True)
