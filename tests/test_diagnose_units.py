@@ -1,9 +1,11 @@
 """Small checks of the discrepancy loop's numerical helpers (no simulation)."""
 
 import numpy as np
+import pytest
 
-from hdjax import Significance
+from hdjax import Significance, diagnose_effects
 from hdjax._discrepancy.loop import FIXED_IN_FOLDS, _Column, _drift_share, _FoldFits, _judge, _refusal, _solve_normal, held_in_folds, near_misses
+from helpers import hd2
 
 
 def test_gauss_newton_step_solves_the_normal_equations():
@@ -537,3 +539,13 @@ def test_held_in_folds_holds_a_whole_term_or_one_named_parameter_of_it():
     # a term named whole holds every column of it; nothing adopted, nothing held
     assert held_in_folds(["sensor_offset"], cand_idx, cols, 2, held={"sensor_offset"}) == {2, 3, 4}
     assert held_in_folds([], cand_idx, cols, 2) == set()
+
+
+@pytest.mark.parametrize("bad", [0, -2, True])
+def test_a_bad_jacobian_substeps_is_refused_before_any_work(bad):
+    """`diagnose(jacobian_substeps=...)` (the fixed-step plant's substeps in the Jacobians) takes a
+    whole number ≥ 1 or None; anything else is refused by name before any simulation (here there is
+    not even an experiment to simulate)."""
+    p, drive = hd2()
+    with pytest.raises(ValueError, match="jacobian_substeps"):
+        diagnose_effects(p, drive, [], jacobian_substeps=bad)

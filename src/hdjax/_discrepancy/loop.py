@@ -1667,6 +1667,10 @@ def diagnose(
     timing = {}
     t0 = time.perf_counter()
     candidates, model_form = _check_names(candidates, model_form, cross_validation)
+    if jacobian_substeps is not None and (not isinstance(jacobian_substeps, int) or isinstance(jacobian_substeps, bool)
+                                          or jacobian_substeps < 1):
+        raise ValueError(f"`diagnose`: jacobian_substeps must be a whole number ≥ 1 or None (the simulator's own), "
+                         f"got {jacobian_substeps!r}.")
     if labels is not None and len(labels) != len(experiments):
         raise ValueError(f"`diagnose`: `labels` names {len(labels)} experiments, but {len(experiments)} were given; "
                          "pass one name per experiment (its file), or none.")
