@@ -12,7 +12,8 @@ the time per dataset.
 Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json FILE] [--datasets DIR]
 [--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]
 [--low-speed lugre] [--noise per_record] [--viscous-exponent 0.7] [--no-physical-sign] [--consistency-any-mode]
-[--negligible-record-loss 0] [--angle simulated|measured] [--substeps 4] [--jacobian-substeps 2]`.
+[--negligible-record-loss 0] [--angle simulated|measured] [--substeps 4] [--jacobian-substeps 2]
+[--untouched-record-change 0]`.
 
 `--low-speed lugre` and `--noise per_record` draw the datasets from a variant of the bench (a LuGre
 low-speed law with a stiction bump instead of exact stick–slip; sensor noise scaled with each
@@ -149,6 +150,10 @@ def main() -> int:
     ap.add_argument("--negligible-record-loss", type=float, default=None,
                     help="diagnose with Significance.negligible_record_loss set to this share (a held-out record a "
                          "candidate makes worse by at most this share does not count against it; default: the package's)")
+    ap.add_argument("--untouched-record-change", type=float, default=None,
+                    help="Significance.untouched_record_change (records the candidate moves by at most this share of "
+                         "their error do not raise the consistency rule's floor; default: the package's, 0.02; 0: the floor "
+                         "is half the mode, the rule before 2026-12-05)")
     ap.add_argument("--angle", default=None, choices=("simulated", "measured"),
                     help="the wave-generator angle of the periodic terms: the simulated one, or the measured one "
                          "(`Simulator.measured_angle`; default: the package's)")
@@ -164,6 +169,13 @@ def main() -> int:
         solver = {} if args.substeps is None else {"solver": VelocityImplicit(substeps=args.substeps)}
         simulator_option = {"simulator": Simulator(rtol=1e-6, atol=1e-8, measured_angle=args.angle != "simulated", **solver)}
     rule_options = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
+    if args.untouched_record_change is not None:
+        import dataclasses
+
+        import hdjax._discrepancy.loop as loop_module
+
+        loop_module.OUTPUT_ERROR_RULES = dataclasses.replace(loop_module.OUTPUT_ERROR_RULES,
+                                                             untouched_record_change=args.untouched_record_change)
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     jacobian_options = {} if args.jacobian_substeps is None else {"jacobian_substeps": args.jacobian_substeps}
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"

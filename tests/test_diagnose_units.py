@@ -135,6 +135,16 @@ def test_consistency_does_not_count_records_a_candidate_barely_makes_worse():
     s = _judge(before, after, folds, modes, 2, rule)
     assert "consistency" in s["refused_by"] and (s["improved_count"], s["counted_count"]) == (2, 4)
     assert "only 2 of the 4 free tests counted" in _refusal("cogging", s, rule, [f"r{i}" for i in range(16)])
+    # ... unless the six are left alone: with `untouched_record_change` the floor is the records the
+    # candidate moves (as an input delay that acts only where the current changes fast), at least two
+    moving = Significance(negligible_record_loss=0.02, untouched_record_change=0.02)
+    s = _judge(before, after, folds, modes, 2, moving)
+    assert "consistency" not in s["refused_by"] and (s["improved_count"], s["counted_count"]) == (2, 2)
+    before, after = _residuals([0.0] * 8 + [0.6, 0.7] + [-0.05] * 6)  # moved and made 5 % worse: counted
+    assert "consistency" in _judge(before, after, folds, modes, 2, moving)["refused_by"]
+    before, after = _residuals([0.0] * 8 + [0.9] + [-0.005] * 7)  # one record alone never suffices
+    s = _judge(before, after, folds, modes, 2, moving)
+    assert "consistency" in s["refused_by"] and (s["improved_count"], s["counted_count"]) == (1, 2)
     # the rule only ever counts fewer records against a candidate: never a lower share than the default
     rng = np.random.default_rng(3)
     for _ in range(200):
@@ -203,8 +213,9 @@ def test_friction_rules_need_every_fold_up_to_four_and_all_but_one_of_five():
             need = folds if folds < 5 else folds - 1
             assert FRICTION_RULES.consistent(improved / folds) == (improved >= need), (folds, improved)
     # the dynamic diagnosis differs from the field defaults only in `negligible_record_loss` (measured
-    # on both benches, forty-fourth session); the friction-only rule counts every fold
-    assert OUTPUT_ERROR_RULES == Significance(negligible_record_loss=0.02)
+    # on both benches, forty-fourth session) and `untouched_record_change` (fifty-fifth); the
+    # friction-only rule counts every fold
+    assert OUTPUT_ERROR_RULES == Significance(negligible_record_loss=0.02, untouched_record_change=0.02)
     assert FRICTION_RULES.min_relative_gain == 0.01 and FRICTION_RULES.negligible_record_loss == 0.0
 
 

@@ -960,7 +960,8 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
     mode_dchi = {md: float(np.sum(d[modes == md])) for md in mode_gains}
     # consistency over records: most held-out experiments of the mode where it acts must improve
     # (misfit that one term absorbs in a few records is no finding)
-    counts = {md: rule.improved_fraction(d[modes == md], e_before[modes == md]) for md in mode_gains}
+    moved = _per_exp(res_after - res_before)  # how far the candidate moves each held-out record
+    counts = {md: rule.improved_fraction(d[modes == md], e_before[modes == md], moved[modes == md]) for md in mode_gains}
     improved_in = {md: c[0] for md, c in counts.items()}
     acting = max(mode_gains, key=mode_gains.__getitem__)
     if rule.consistency_in == "any_acting":  # a mode where it gains beyond the effect size, consistent first
@@ -1193,7 +1194,8 @@ def _refusal(c: str, s: dict, rule: Significance, labels: list[str]) -> str:
                               + ", ".join(f"{k} {100 * v:+.1f} %" for k, v in s["mode_gains"].items()) + ")",
         "consistency": lambda: (f"only {s['improved_count']} of the {s['counted_count']} {kind} tests "
                                 + (f"counted (those made worse by at most {100 * rule.negligible_record_loss:g} % are left out, down to "
-                                   f"half of the {s['mode_count']}) " if s["counted_count"] != s["mode_count"] else "")
+                                   f"those it moves, at least two, and at most half of the {s['mode_count']}) "
+                                   if s["counted_count"] != s["mode_count"] else "")
                                 + "improve held out "
                                 f"(rule: {100 * rule.min_improved_fraction:g} %); the most, {labels[best]}, by "
                                 f"{gain_best:+.0f} %"),
