@@ -170,12 +170,7 @@ def main() -> int:
         simulator_option = {"simulator": Simulator(rtol=1e-6, atol=1e-8, measured_angle=args.angle != "simulated", **solver)}
     rule_options = {} if args.negligible_record_loss is None else {"negligible_record_loss": args.negligible_record_loss}
     if args.untouched_record_change is not None:
-        import dataclasses
-
-        import hdjax._discrepancy.loop as loop_module
-
-        loop_module.OUTPUT_ERROR_RULES = dataclasses.replace(loop_module.OUTPUT_ERROR_RULES,
-                                                             untouched_record_change=args.untouched_record_change)
+        rule_options["untouched_record_change"] = args.untouched_record_change
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     jacobian_options = {} if args.jacobian_substeps is None else {"jacobian_substeps": args.jacobian_substeps}
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"

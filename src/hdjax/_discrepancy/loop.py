@@ -1596,6 +1596,7 @@ def diagnose(
     consistency_in: str = OUTPUT_ERROR_RULES.consistency_in,
     physical_sign: bool = OUTPUT_ERROR_RULES.physical_sign,
     negligible_record_loss: float = OUTPUT_ERROR_RULES.negligible_record_loss,
+    untouched_record_change: float = OUTPUT_ERROR_RULES.untouched_record_change,
     labels: list[str] | None = None,
     log=lambda *_: None,
 ) -> Diagnosis:
@@ -1651,6 +1652,8 @@ def diagnose(
     named only with that sign in every held-out fold fit (default True). `negligible_record_loss`: a held-out
     experiment a candidate makes worse by no more than this share of its error does not count
     against it in the consistency rule, down to half of the mode's (`Significance.improved_fraction`).
+    `untouched_record_change`: down to the held-out experiments the candidate moves by more than this
+    share of their error instead, when fewer, at least two (default 0.02; 0: half the mode's).
     `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
     (re-whitened by their own noise model), computing only columns not seen yet.
     `labels`: a name per experiment (its file) for the texts of `unexplained` (default
@@ -1683,7 +1686,8 @@ def diagnose(
     requested = set(candidates)
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
                                min_improved_fraction=min_improved_fraction, consistency_in=consistency_in,
-                               physical_sign=physical_sign, negligible_record_loss=negligible_record_loss)
+                               physical_sign=physical_sign, negligible_record_loss=negligible_record_loss,
+                               untouched_record_change=untouched_record_change)
     batch = stack_experiments(experiments)
     n_exp = len(experiments)
     sigma = noise_levels(batch)
