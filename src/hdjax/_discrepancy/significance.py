@@ -81,7 +81,9 @@ class Significance:
     held-out experiment that the candidate moves by at most this share of its whitened squared error
     (‖r_after − r_before‖²) does not raise the consistency rule's floor of counted experiments (0, the
     field's default: the floor is half the mode; `OUTPUT_ERROR_RULES`: 0.02, the floor is the
-    experiments it moves, at least two; see `improved_fraction`)."""
+    experiments it moves, at least two; see `improved_fraction`). The floor exists only with
+    `negligible_record_loss` > 0 (otherwise every experiment of the mode counts), so this field acts
+    only together with it."""
 
     min_relative_gain: float = 0.05
     min_improved_fraction: float = 0.75
@@ -120,8 +122,8 @@ class Significance:
         least two: an effect that acts only in some records (an input delay where the current
         changes fast) is judged on those, and one record alone still never suffices. An input delay
         hidden at SNR 5.4 (bench seed 5011) gained 24 % and 22 % in the locked chirp and square wave,
-        moved the other six locked records by under 2 %, and was refused as 2 of 4 (2026-12-05). A kinematic error [2] hidden at SNR 4 (bench seed
-        7101, 2026-12-03) improved 5 of 8 free records by 7–70 % and made the other three 0–1 %
+        moved the other six locked records by under 2 %, and was refused as 2 of 4 (2026-12-05).
+        A kinematic error [2] hidden at SNR 4 (bench seed 7101, 2026-12-03) improved 5 of 8 free records by 7–70 % and made the other three 0–1 %
         worse; the default rule counts those three against it (5/8 < 75 %) and refused a finding that
         gained 15 % held out. Leaving *every* record moved by ≤ 2 % out (gains too) lost the thermal
         drift of bench seed 5009, which improves 2 free records by 4–8 % and 5 more by under 1 %."""
