@@ -170,7 +170,7 @@ from .evidence import (
     torque_balance_cv,
     unexplained,
 )
-from .significance import OUTPUT_ERROR_RULES, Significance, drift_untestable, forward_selection
+from .significance import OUTPUT_ERROR_RULES, Significance, drift_trend_test, drift_untestable, forward_selection
 
 #: SPEC §4 effects of the plant that this loop does not screen (dropped from any candidate list):
 #: `presliding_friction`, tried inside `low_speed_friction`, took the default bench from 17 to 15 of
@@ -1061,6 +1061,38 @@ def _drift_share_of(loop: _Loop, ff: _FoldFits, c: str, pred_before: np.ndarray,
     return _drift_share(ff, pred_before, steps, cols_c, [fields.index(n) for n in names], loop.modes == mode, sign)
 
 
+def _drift_course(loop: _Loop, c: str) -> np.ndarray:
+    """The time course of drift `c` at each record (`DRIFT_EFFECTS`; the mean over its samples):
+    `thermal_drift`'s e^(−t_session/τ) at the τ the loop holds (`AbstractTerm.from_data`)."""
+    assert c == "thermal_drift", c
+    tau = abs(float(loop.prob.effects.term(c).tau))
+    b = loop.batch
+    t = np.asarray(b.start_time)[:, None] + np.asarray(b.time)
+    m = np.asarray(b.mask, dtype=bool)
+    return np.array([float(np.mean(np.exp(-t[e][m[e]] / tau))) for e in range(t.shape[0])])
+
+
+def _drift_trend_of(loop: _Loop, ff: _FoldFits, c: str, cols_c: list[int]) -> tuple[float, float]:
+    """The between-record trend test (`hdjax._discrepancy.significance.drift_trend_test`) of drift
+    candidate `c` with its one amplitude column `cols_c` (β) on the records of the mode where it
+    acts: each record's own level of what the drift scales (its whitened residual projected on the
+    amplitude column, divided by the course: for the thermal drift, the record's viscous friction
+    relative to the common fit) against the course `_drift_course`, weighted by each record's
+    information about that level. Returns (p-value, amplitude in the column's units)."""
+    _, mode = DRIFT_EFFECTS[c]
+    rec = np.flatnonzero(loop.modes == mode)
+    if len(cols_c) != 1 or rec.size < 3:
+        return 1.0, 0.0
+    k = ff.col_of[cols_c[0]]
+    g = _drift_course(loop, c)[rec]
+    a, b = ff.A_exp[rec, k, k], ff.b_exp[rec, k]
+    if not (np.all(a > 0) and np.all(g > 0)):
+        return 1.0, 0.0
+    p, slope = drift_trend_test(g, -g * b / a, a / g**2)
+    col = loop.cols[cols_c[0] - loop.n_base]
+    return p, col.scale * slope
+
+
 def _fold_sse(res: np.ndarray, folds: np.ndarray) -> np.ndarray:
     """Squared error of each half."""
     return np.array([np.sum(res[folds == f] ** 2) for f in (0, 1)])
@@ -1126,14 +1158,20 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
     steps = {c: ff.steps(chosen_idx + cand_idx[c]) for c in pool}  # held-out fold fits with each candidate
     predicted = {c: 1.0 - _fold_sse(steps[c][1], folds).sum() / _fold_sse(pred_before, folds).sum() for c in pool}
     share = {c: _drift_share_of(loop, ff, c, pred_before, steps[c], cand_idx[c]) for c in pool if c in DRIFT_EFFECTS}
+    trend = ({c: _drift_trend_of(loop, ff, c, cand_idx[c]) for c in pool if c in DRIFT_EFFECTS}
+             if rule.drift_trend_p > 0 else {})
     scores, raw_after_of = {}, {}
     for c in sorted(pool, key=lambda c: -predicted[c]):
         s = {"predicted_gain": float(predicted[c]), "k": len(cand_idx[c]), "simulated": False}
         drift = share.get(c)
         if drift is not None:
             s["between_record_share"] = drift
-        if simulate_all or (len(raw_after_of) < n_simulated
-                            and (predicted[c] > SIMULATED_FROM * rule.min_relative_gain or rule.drift_is_large(drift))):
+        trend_named = c in trend and trend[c][0] <= rule.drift_trend_p
+        if c in trend:
+            s["trend_p_value"], s["trend_amplitude"] = trend[c]
+        if simulate_all or trend_named or (len(raw_after_of) < n_simulated
+                                           and (predicted[c] > SIMULATED_FROM * rule.min_relative_gain
+                                                or rule.drift_is_large(drift))):
             zs_c = steps[c][0]
             if c in DAMPED_SCREEN:
                 s["step_fraction"] = frac = _in_sample_step_fraction(loop, ff, chosen_idx, cand_idx[c])
@@ -1148,6 +1186,11 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
                 if rule.physical_sign and not s["physical_sign"]:
                     s["significant"] = False
                     s["refused_by"] = s["refused_by"] + ["physical_sign"]
+            if trend_named and not s["significant"]:
+                # the drift's own test: the records' levels follow its time course beyond what
+                # shuffled start times give (`drift_trend_test`); the held-out rules' verdict is kept
+                s["held_out_refused_by"], s["refused_by"], s["significant"] = s["refused_by"], [], True
+                s["named_by"] = "between_record_trend"
         else:
             s.update(gain=float(predicted[c]), significant=False)
         scores[c] = s
@@ -1158,6 +1201,8 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
                + (f", {s['acting_mode']} without its best {s['acting_mode_gain_without_best']:+.3f}"
                   if s["acting_mode_gain_without_best"] is not None else "") + ")" if s["simulated"] else "")
             + (f" (between-record share {drift:.2f})" if drift is not None else "")
+            + (f" (trend p {s['trend_p_value']:.4f}, amplitude {s['trend_amplitude']:+.4f})" if "trend_p_value" in s else "")
+            + (" named by its between-record trend" if s.get("named_by") == "between_record_trend" else "")
             + (f" contradicted by held-out experiment {s['contradicted_by']}" if s.get("contradicted_by") is not None else "")
             + (f" fitted with the unphysical sign of {PHYSICAL_SIGN[c][0]}" if s.get("physical_sign") is False else "")
             + (f" (step fraction {s['step_fraction']:g})" if "step_fraction" in s else "")
@@ -1282,6 +1327,11 @@ def _finding(loop: _Loop, c: str, s: dict, raw_before, raw_after, rnd: int) -> d
             "mode_weighted_sse_reductions": s["mode_delta_chi2"], "harm_ratio": s["harm_ratio"]}
     if "between_record_share" in s:  # a drift over the session (`DRIFT_EFFECTS`)
         gain["between_record_share"] = s["between_record_share"]
+    if "trend_p_value" in s:  # and its between-record trend test (`_drift_trend_of`)
+        gain["between_record_trend_p"] = s["trend_p_value"]
+        gain["between_record_trend_amplitude"] = s["trend_amplitude"]
+    if "held_out_refused_by" in s:
+        gain["held_out_rules_refused"] = s["held_out_refused_by"]
     return {"effect": c, "confidence": round(conf, 4), "gain": gain, "_round": rnd}
 
 
@@ -1597,6 +1647,7 @@ def diagnose(
     physical_sign: bool = OUTPUT_ERROR_RULES.physical_sign,
     negligible_record_loss: float = OUTPUT_ERROR_RULES.negligible_record_loss,
     untouched_record_change: float = OUTPUT_ERROR_RULES.untouched_record_change,
+    drift_trend_p: float = OUTPUT_ERROR_RULES.drift_trend_p,
     labels: list[str] | None = None,
     log=lambda *_: None,
 ) -> Diagnosis:
@@ -1654,6 +1705,9 @@ def diagnose(
     against it in the consistency rule, down to half of the mode's (`Significance.improved_fraction`).
     `untouched_record_change`: down to the held-out experiments the candidate moves by more than this
     share of their error instead, when fewer, at least two (default 0.02; 0: half the mode's).
+    `drift_trend_p`: a drift over the session (`thermal_drift`) is named also when its
+    between-record trend test gives at most this p-value (`Significance.drift_trend_p`,
+    `_drift_trend_of`; default 0.01; 0: the held-out rules alone, the loop before 2026-12-05).
     `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
     (re-whitened by their own noise model), computing only columns not seen yet.
     `labels`: a name per experiment (its file) for the texts of `unexplained` (default
@@ -1687,7 +1741,7 @@ def diagnose(
     rule = dataclasses.replace(OUTPUT_ERROR_RULES, min_relative_gain=min_relative_gain,
                                min_improved_fraction=min_improved_fraction, consistency_in=consistency_in,
                                physical_sign=physical_sign, negligible_record_loss=negligible_record_loss,
-                               untouched_record_change=untouched_record_change)
+                               untouched_record_change=untouched_record_change, drift_trend_p=drift_trend_p)
     batch = stack_experiments(experiments)
     n_exp = len(experiments)
     sigma = noise_levels(batch)

@@ -18,6 +18,7 @@ and goes on until nothing is significant.
 """
 
 import dataclasses
+import itertools
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -83,7 +84,10 @@ class Significance:
     field's default: the floor is half the mode; `OUTPUT_ERROR_RULES`: 0.02, the floor is the
     experiments it moves, at least two; see `improved_fraction`). The floor exists only with
     `negligible_record_loss` > 0 (otherwise every experiment of the mode counts), so this field acts
-    only together with it."""
+    only together with it. `drift_trend_p`: a drift over the session is named also when its
+    between-record trend test (`drift_trend_test`: the records' own levels of the base parameter it
+    changes against the drift's time course, start times shuffled) gives at most this p-value
+    (0, the field's default: no such route; `OUTPUT_ERROR_RULES`: 0.01)."""
 
     min_relative_gain: float = 0.05
     min_improved_fraction: float = 0.75
@@ -97,6 +101,7 @@ class Significance:
     physical_sign: bool = True
     negligible_record_loss: float = 0.0
     untouched_record_change: float = 0.0
+    drift_trend_p: float = 0.0
 
     def __post_init__(self):
         if self.consistency_in not in ("largest_gain", "any_acting"):
@@ -152,6 +157,52 @@ class Significance:
         return between_record_share is not None and between_record_share >= self.min_drift_share
 
 
+def _weighted_slope_t(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares slope of `y` on each row of `x` (…, n) and its t-statistic (slope over
+    its standard error from the weighted residual scatter, n − 2 degrees of freedom)."""
+    sw = float(np.sum(w))
+    xm = np.sum(x * w, axis=-1, keepdims=True) / sw
+    ym = float(np.sum(w * y)) / sw
+    sxx = np.sum(w * (x - xm) ** 2, axis=-1)
+    slope = np.sum(w * (x - xm) * (y - ym), axis=-1) / sxx
+    res = (y - ym) - slope[..., None] * (x - xm)
+    se = np.sqrt(np.sum(w * res**2, axis=-1) / (x.shape[-1] - 2) / sxx)
+    return slope, slope / np.maximum(se, 1e-300)
+
+
+def drift_trend_test(course, level, information, *, max_enumerated: int = 8, n_sampled: int = 20000,
+                     seed: int = 0) -> tuple[float, float]:
+    """One-sided permutation test of a drift over the session: does each record's own level of a
+    base parameter (`level`, e.g. its viscous friction relative to the common fit) rise with the
+    drift's time course at the record (`course`, e.g. e^(−t_start/τ))? Weighted least squares with
+    each record's `information` about its level (its precision) as weight, capped at the median
+    record's, so that one record whose misfit pulls its own level far cannot decide (bench seed
+    5022, 2026-12-05: one free record at 3× the others' whitened error). The statistic is the
+    slope's t-value; its null distribution comes from the same records with the courses shuffled
+    among them, so the scatter the base model's misfit leaves in the levels is in the null, not an
+    assumed noise level. Every permutation up to `max_enumerated` records (8! = 40 320), else
+    `n_sampled` drawn with `seed`. The test assumes the records' misfits do not depend on when they
+    were recorded (the order of the session is unrelated to the kind of test); a session that runs
+    its tests in order of kind or amplitude needs that order randomised.
+
+    Returns (p-value, slope): the share of orderings whose t-value is at least the observed one,
+    and the slope (the drift's amplitude in the units of `level` per unit of `course`). p = 1 with
+    fewer than three records or no spread of `course`."""
+    x, y, w = (np.asarray(a, dtype=float) for a in (course, level, information))
+    n = x.size
+    if n < 3 or np.ptp(x) <= 0 or not np.all(np.isfinite(y)) or not np.all(w > 0):
+        return 1.0, 0.0
+    w = np.minimum(w, np.median(w))
+    slope, t = _weighted_slope_t(x[None], y, w)
+    if n <= max_enumerated:
+        perms = np.array(list(itertools.permutations(range(n))))
+    else:
+        rng = np.random.default_rng(seed)
+        perms = np.array([rng.permutation(n) for _ in range(n_sampled)])
+    _, t_perm = _weighted_slope_t(x[perms], y, w)
+    return float(np.mean(t_perm >= t[0] - 1e-12 * abs(t[0]))), float(slope[0])
+
+
 def drift_untestable(start_times) -> str | None:
     """Why a drift over the session (`thermal_drift`) cannot be tested on records starting at
     `start_times` (s), or None where it can: one record, or records spread over the session. When every
@@ -172,7 +223,7 @@ def drift_untestable(start_times) -> str | None:
 #: `untouched_record_change` = 2 %: on the 40-dataset independent-bench benchmark 34 of 40 named
 #: right against 33 (the input delay of seed 5011 named, nothing else changed) and no finding on
 #: its 6 clean datasets (2026-12-05, fifty-fifth session).
-OUTPUT_ERROR_RULES = Significance(negligible_record_loss=0.02, untouched_record_change=0.02)
+OUTPUT_ERROR_RULES = Significance(negligible_record_loss=0.02, untouched_record_change=0.02, drift_trend_p=0.01)
 #: The friction-only diagnosis's rules (`hdjax.diagnose_friction` defaults).
 FRICTION_RULES = Significance(min_relative_gain=0.01, min_improved_fraction=0.8)
 
