@@ -5,6 +5,7 @@ import pytest
 
 from hdjax import Significance, diagnose_effects
 from hdjax._discrepancy.loop import FIXED_IN_FOLDS, _Column, _drift_share, _FoldFits, _judge, _refusal, _solve_normal, held_in_folds, near_misses
+from hdjax._discrepancy.significance import drift_trend_test
 from helpers import hd2
 
 
@@ -213,10 +214,11 @@ def test_friction_rules_need_every_fold_up_to_four_and_all_but_one_of_five():
             need = folds if folds < 5 else folds - 1
             assert FRICTION_RULES.consistent(improved / folds) == (improved >= need), (folds, improved)
     # the dynamic diagnosis differs from the field defaults only in `negligible_record_loss` (measured
-    # on both benches, forty-fourth session) and `untouched_record_change` (fifty-fifth); the
-    # friction-only rule counts every fold
-    assert OUTPUT_ERROR_RULES == Significance(negligible_record_loss=0.02, untouched_record_change=0.02)
+    # on both benches, forty-fourth session), `untouched_record_change` (fifty-fifth) and
+    # `drift_trend_p` (fifty-sixth); the friction-only rule counts every fold and has no trend route
+    assert OUTPUT_ERROR_RULES == Significance(negligible_record_loss=0.02, untouched_record_change=0.02, drift_trend_p=0.01)
     assert FRICTION_RULES.min_relative_gain == 0.01 and FRICTION_RULES.negligible_record_loss == 0.0
+    assert FRICTION_RULES.drift_trend_p == 0.0
 
 
 def test_forward_selection_names_the_best_significant_candidate_each_round():
@@ -560,3 +562,67 @@ def test_a_bad_jacobian_substeps_is_refused_before_any_work(bad):
     p, drive = hd2()
     with pytest.raises(ValueError, match="jacobian_substeps"):
         diagnose_effects(p, drive, [], jacobian_substeps=bad)
+
+
+def test_drift_trend_test_enumerates_every_order_of_the_records():
+    """Eight records whose levels rise exactly with the drift's course: only the observed order (of
+    8! = 40 320) reaches its t-value, and the slope is the drift's amplitude."""
+    course = np.exp(-np.array([130.0, 1346.0, 726.0, 176.0, 285.0, 1409.0, 404.0, 1133.0]) / 750.0)
+    rng = np.random.default_rng(3)
+    level = 0.005 * course + 1e-6 * rng.normal(size=8)
+    p, amplitude = drift_trend_test(course, level, np.ones(8))
+    assert p == pytest.approx(1 / 40320)
+    assert amplitude == pytest.approx(0.005, rel=1e-3)
+    # falling levels: the wrong sign for a drift (one-sided) gives no evidence
+    assert drift_trend_test(course, -level, np.ones(8))[0] > 0.99
+    # fewer than three records, or one start time for all: nothing to test
+    assert drift_trend_test(course[:2], level[:2], np.ones(2)) == (1.0, 0.0)
+    assert drift_trend_test(np.full(8, 0.5), level, np.ones(8)) == (1.0, 0.0)
+    # more records than enumerated: a fixed-seed sample of orders, the same p on every call
+    big = np.linspace(0.1, 0.9, 12)
+    lv = 0.005 * big + 2e-4 * rng.normal(size=12)
+    assert drift_trend_test(big, lv, np.ones(12)) == drift_trend_test(big, lv, np.ones(12))
+    assert drift_trend_test(big, lv, np.ones(12))[0] < 0.01
+
+
+def test_drift_trend_test_holds_its_level_on_scatter_without_a_drift():
+    """Levels that scatter with heavy tails and unequal precision but do not follow the course (the
+    misfit a base model leaves record by record): p <= 0.05 in about 5 % of 1000 draws of six
+    records, p <= 0.01 in about 1 % (the null comes from the records themselves, no noise level is
+    assumed)."""
+    rng = np.random.default_rng(11)
+    ps = []
+    for _ in range(1000):
+        course = np.exp(-rng.uniform(0.0, 1500.0, size=6) / 750.0)
+        info = rng.uniform(0.2, 5.0, size=6)
+        level = rng.standard_t(3, size=6) / np.sqrt(info)
+        ps.append(drift_trend_test(course, level, info)[0])
+    ps = np.array(ps)
+    assert 0.02 <= np.mean(ps <= 0.05) <= 0.09
+    assert np.mean(ps <= 0.01) <= 0.03
+
+
+def test_drift_trend_test_is_not_decided_by_one_record_with_much_information():
+    """Seven records follow the drift; an eighth, early in the session, with 100 times their
+    information, sits 0.2 % of the viscous level below it (a record whose misfit pulls its own
+    level; bench seed 5022's window test). With the weights capped at the median record's it
+    cannot overturn the seven (p 0.005); with the plain precision weights it would (p 0.025)."""
+    course = np.exp(-np.array([130.0, 1346.0, 726.0, 176.0, 285.0, 1409.0, 404.0, 1133.0]) / 750.0)
+    rng = np.random.default_rng(5)
+    level = 0.005 * course + 2e-4 * rng.normal(size=8)
+    level[0] = 0.005 * course[0] - 0.002
+    info = np.ones(8)
+    info[0] = 100.0
+    p, amplitude = drift_trend_test(course, level, info)
+    assert p <= 0.01 and amplitude > 0
+    # capped, the outlier weighs as one record of eight: the same p as with equal weights
+    assert drift_trend_test(course, level, np.ones(8))[0] == pytest.approx(p)
+    # uncapped: the same permutation test on the plain precision weights lets the outlier decide
+    from itertools import permutations
+
+    from hdjax._discrepancy.significance import _weighted_slope_t
+
+    orders = np.array(list(permutations(range(8))))
+    _, t = _weighted_slope_t(course[None], level, info)
+    _, t_perm = _weighted_slope_t(course[orders], level, info)
+    assert np.mean(t_perm >= t[0] - 1e-12) > 0.01
