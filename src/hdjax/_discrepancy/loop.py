@@ -154,6 +154,7 @@ from .._model.effects import (
     TERMS,
     AbstractPeriodicTerm,
     Effects,
+    ThermalDrift,
 )
 from .._model.paper import Drive, Parameters
 from .._plant.sharding import experiment_mesh, for_each_experiment, map_experiments, pad_experiments
@@ -1064,8 +1065,9 @@ def _drift_share_of(loop: _Loop, ff: _FoldFits, c: str, pred_before: np.ndarray,
 def _drift_course(loop: _Loop, c: str) -> np.ndarray:
     """The time course of drift `c` at each record (`DRIFT_EFFECTS`; the mean over its samples):
     `thermal_drift`'s e^(−t_session/τ) at the τ the loop holds (`AbstractTerm.from_data`)."""
-    assert c == "thermal_drift", c
-    tau = abs(float(loop.prob.effects.term(c).tau))
+    term = loop.prob.effects.term(c)
+    assert isinstance(term, ThermalDrift), c
+    tau = abs(float(term.tau))
     b = loop.batch
     t = np.asarray(b.start_time)[:, None] + np.asarray(b.time)
     m = np.asarray(b.mask, dtype=bool)
