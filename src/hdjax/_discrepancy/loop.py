@@ -1320,8 +1320,11 @@ def _form_item(loop: _Loop, c: str, s: dict, raw_before, raw_after_of: dict, rnd
 
 def _finding(loop: _Loop, c: str, s: dict, raw_before, raw_after, rnd: int) -> dict:
     """A finding (SPEC §4) from its screening scores; parameters, orders and evidence are added by
-    `_finish`. Confidence: the χ² probability of its held-out Δχ² with k degrees of freedom."""
+    `_finish`. Confidence: the χ² probability of its held-out Δχ² with k degrees of freedom; for a
+    drift named by its between-record trend alone (`held_out_refused_by`), 1 − the trend's p-value."""
     conf = float(1.0 - stats.chi2.sf(max(s["delta_chi2"], 0.0), s["k"])) if s["delta_chi2"] > 0 else 0.0
+    if "held_out_refused_by" in s:
+        conf = 1.0 - float(s["trend_p_value"])
     gain = {"heldout_nrmse_before": loop.nrmse(raw_before), "heldout_nrmse_after": loop.nrmse(raw_after),
             "relative_reduction": s["gain"], "fold_reductions": s["fold_gains"],
             "mode_reductions": s["mode_gains"],
@@ -1905,10 +1908,19 @@ def _evidence_text(name, evidence, round_scores, finding, next_round_scores=None
     a strain-gauge ripple [1] at +6.2 % named over the hidden kinematic error [1] at +5.7 %, which then
     lost 7.1 %)."""
     g = finding["gain"]
-    txt = (f"adding {name} to the plant, re-fitted without the experiment it predicts, reduces the whitened "
-           f"squared error of the held-out experiments by {100 * g['relative_reduction']:.1f} % (halves: "
+    verb = "reduces" if g["relative_reduction"] >= 0 else "raises"
+    txt = (f"adding {name} to the plant, re-fitted without the experiment it predicts, {verb} the whitened "
+           f"squared error of the held-out experiments by {100 * abs(g['relative_reduction']):.1f} % (halves: "
            f"{', '.join(f'{100 * x:.1f} %' for x in g['fold_reductions'])}; "
            f"{', '.join(f'{k} tests {100 * x:.1f} %' for k, x in g['mode_reductions'].items())})")
+    if "between_record_trend_p" in g:
+        txt += (f"; between records, the free tests' own viscous friction follows the drift's course over the session "
+                f"(weighted trend p = {g['between_record_trend_p']:.4f} over every ordering of their start times, "
+                f"amplitude {100 * g['between_record_trend_amplitude']:+.2f} % of the viscous friction)")
+        if g.get("held_out_rules_refused"):
+            txt += (" and names it; the held-out rules alone would not have (" + ", ".join(g["held_out_rules_refused"])
+                    + "): a drift of a few tenths of a percent changes every record's fit little, so its held-out gain "
+                    "is small and one record's misfit can outweigh it")
     if name in PERIODIC:
         txt += (f"; residual order spectra peak at orders {evidence['candidate_orders']} per wave-generator turn"
                 f" (orders screened for {name}: {evidence['candidate_orders_per_effect'].get(name)})")

@@ -194,7 +194,11 @@ def _report(r: dict) -> str:
         for f in r["findings"]:
             g = f["gain"]
             orders = f" at orders {f['orders']} per wave-generator turn" if "orders" in f else ""
-            lines.append(f"- **{f['effect']}**{orders}: held-out error falls by {100 * g['relative_reduction']:.1f} % "
+            change = (f"falls by {100 * g['relative_reduction']:.1f} %" if g["relative_reduction"] >= 0
+                      else f"rises by {-100 * g['relative_reduction']:.1f} %")
+            trend = (f"; named by its between-record trend (p = {g['between_record_trend_p']:.4f})"
+                     if g.get("held_out_rules_refused") else "")
+            lines.append(f"- **{f['effect']}**{orders}: held-out error {change}{trend} "
                          f"(torque NRMSE {g['heldout_nrmse_before']['torque']:.4f} → {g['heldout_nrmse_after']['torque']:.4f}); "
                          f"confidence {f['confidence']:.3f}. Parameters: "
                          + with_units(f["parameters"], f.get("parameter_units", {})) + f". Evidence: {f['evidence']}.")
