@@ -300,3 +300,16 @@ def test_read_target_turns_dataset_warnings_into_notes(tmp_path):
     assert sum("temperature" in n for n in notes) == 2
     assert any("a.csv" in n for n in notes) and any("b.csv" in n for n in notes)
     assert any("gearbox" in n and "drive" in n for n in notes)
+
+
+@pytest.mark.parametrize("value", ["0.01x", 1.5, -0.1, True])
+def test_a_bad_drift_trend_level_is_refused_before_any_work(tmp_path, capsys, value):
+    """`diagnose.drift_trend_p` (and `untouched_record_change`) must be a number in [0, 1): anything
+    else stops the command before the paper identification, naming the option."""
+    cfg = tmp_path / "configs" / "c.yaml"
+    cfg.parent.mkdir()
+    cfg.write_text(f"dataset: {_repo() / 'data' / 'hd2'}\ndiagnose:\n  drift_trend_p: {value!r}\n".replace("'", '"'))
+    assert _cli.main(["diagnose", str(cfg), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "`diagnose.drift_trend_p` must be a number in [0, 1)" in err
+    assert not (tmp_path / "out" / "diagnosis.json").exists()

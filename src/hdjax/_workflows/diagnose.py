@@ -33,9 +33,21 @@ DEFAULTS = {
     "misfit_scaling": True,  # scale each (experiment, channel) by its misfit where over the noise
     "min_improved_fraction": OUTPUT_ERROR_RULES.min_improved_fraction,  # of the held-out experiments where a candidate acts
     "negligible_record_loss": OUTPUT_ERROR_RULES.negligible_record_loss,  # a held-out record made worse by at most this share does not count against
+    "untouched_record_change": OUTPUT_ERROR_RULES.untouched_record_change,  # records moved by at most this share do not raise the consistency floor
+    "drift_trend_p": OUTPUT_ERROR_RULES.drift_trend_p,  # a drift over the session named also at this between-record trend p-value (0: off)
     "physical_sign": OUTPUT_ERROR_RULES.physical_sign,  # a signed effect (beta, mu, K3, Th, delay > 0, SPEC §4) only with that sign
     "measure_tachometer_lag": True,  # hold the tachometer's lag measured against the output encoder (not fitted)
 }
+
+
+def _share(opts: dict, key: str) -> float:
+    """`diagnose.<key>`, a share or probability in [0, 1) (0 turns its rule off); anything else is
+    refused, naming the key."""
+    value = opts[key]
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and 0.0 <= float(value) < 1.0
+    if not ok:
+        raise ValueError(f"config `diagnose.{key}` must be a number in [0, 1) (0 turns its rule off), got {value!r}.")
+    return float(value)
 
 
 def _run_diagnose(paper, dataset, exps, files, opts, simulator, log):
@@ -47,6 +59,8 @@ def _run_diagnose(paper, dataset, exps, files, opts, simulator, log):
         misfit_scaling=bool(opts["misfit_scaling"]),
         min_improved_fraction=float(opts["min_improved_fraction"]),
         negligible_record_loss=float(opts["negligible_record_loss"]),
+        untouched_record_change=_share(opts, "untouched_record_change"),
+        drift_trend_p=_share(opts, "drift_trend_p"),
         physical_sign=bool(opts["physical_sign"]),
         measure_tachometer_lag=bool(opts["measure_tachometer_lag"]),
         base_steps=int(opts["base_steps"]),
@@ -149,6 +163,8 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     out = pathlib.Path(out)
     opts = section_options(config, "diagnose", DEFAULTS)
     simulator = diagnosis_simulator(opts)  # a bad solver, substeps or tolerance is refused before any work
+    for key in ("untouched_record_change", "drift_trend_p"):  # and a bad share or level
+        _share(opts, key)
     drive, exps, files, _ = dataset.dynamic_part("diagnose", at_least=2)  # two: it holds experiments out
     fit_opts = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
     log(f"[1/3] paper's identification on {len(exps)} experiments (start of the base model)")
