@@ -1071,7 +1071,7 @@ def _drift_course(loop: _Loop, c: str) -> np.ndarray:
     b = loop.batch
     t = np.asarray(b.start_time)[:, None] + np.asarray(b.time)
     m = np.asarray(b.mask, dtype=bool)
-    return np.array([float(np.mean(np.exp(-t[e][m[e]] / tau))) for e in range(t.shape[0])])
+    return np.sum(np.exp(-t / tau), axis=1, where=m) / np.sum(m, axis=1)
 
 
 def _drift_trend_of(loop: _Loop, ff: _FoldFits, c: str, cols_c: list[int]) -> tuple[float, float]:

@@ -59,8 +59,8 @@ def _run_diagnose(paper, dataset, exps, files, opts, simulator, log):
         misfit_scaling=bool(opts["misfit_scaling"]),
         min_improved_fraction=float(opts["min_improved_fraction"]),
         negligible_record_loss=float(opts["negligible_record_loss"]),
-        untouched_record_change=_share(opts, "untouched_record_change"),
-        drift_trend_p=_share(opts, "drift_trend_p"),
+        untouched_record_change=float(opts["untouched_record_change"]),
+        drift_trend_p=float(opts["drift_trend_p"]),
         physical_sign=bool(opts["physical_sign"]),
         measure_tachometer_lag=bool(opts["measure_tachometer_lag"]),
         base_steps=int(opts["base_steps"]),
@@ -164,7 +164,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     opts = section_options(config, "diagnose", DEFAULTS)
     simulator = diagnosis_simulator(opts)  # a bad solver, substeps or tolerance is refused before any work
     for key in ("untouched_record_change", "drift_trend_p"):  # and a bad share or level
-        _share(opts, key)
+        opts[key] = _share(opts, key)
     drive, exps, files, _ = dataset.dynamic_part("diagnose", at_least=2)  # two: it holds experiments out
     fit_opts = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
     log(f"[1/3] paper's identification on {len(exps)} experiments (start of the base model)")
