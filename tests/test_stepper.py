@@ -120,6 +120,15 @@ def test_presliding_friction_is_refused_by_the_stepper():
         hdjax.simulate(p, drive, exp, effects=eff, simulator=hdjax.Simulator(solver=hdjax.VelocityImplicit()))
 
 
+@pytest.mark.parametrize("kw", [{"substeps": 0}, {"substeps": 2.0}, {"iterations": -1}, {"substeps": True}])
+def test_step_options_out_of_range_are_refused_with_their_name(kw):
+    """A step count that is not a whole number >= 1 is refused when the stepper is made, naming the
+    option (it would otherwise divide the sample period by zero or loop zero times). Under the suite's
+    runtime type checker a float is refused by the checker first, with the option named too."""
+    with pytest.raises((ValueError, TypeError), match=next(iter(kw))):
+        hdjax.VelocityImplicit(**kw)
+
+
 def test_tangent_dependence_is_an_exact_zero_with_a_tangent():
     """The term added to the scan's start state (so that JAX traces the step once under `jvp` and
     `vmap`) is exactly zero, whatever the values (inf and NaN included), and its derivative is zero;

@@ -58,6 +58,7 @@ set-valued sticking is that law's rigid limit (δ → 0); `simulate` refuses the
 """
 
 import functools
+import numbers
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -87,6 +88,14 @@ class VelocityImplicit(eqx.Module):
     substeps: int = eqx.field(static=True, default=1)
     iterations: int = eqx.field(static=True, default=48)
     corrector: bool = eqx.field(static=True, default=True)
+
+    def __check_init__(self):
+        for name in ("substeps", "iterations"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+                raise ValueError(f"`VelocityImplicit.{name}` must be a whole number >= 1, got {v!r}.")
+        if not isinstance(self.corrector, bool):
+            raise TypeError(f"`VelocityImplicit.corrector` must be True or False, got {self.corrector!r}.")
 
 
 #: A step's root counts as converged when the residual of its equation is at most this fraction of
