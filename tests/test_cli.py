@@ -313,3 +313,19 @@ def test_a_bad_drift_trend_level_is_refused_before_any_work(tmp_path, capsys, va
     err = capsys.readouterr().err
     assert "`diagnose.drift_trend_p` must be a number in [0, 1)" in err
     assert not (tmp_path / "out" / "diagnosis.json").exists()
+
+
+@pytest.mark.parametrize("key,value,message", [
+    ("friction_uncertainty", "true", "`tune.friction_uncertainty` must be a number in [0, 1)"),
+    ("friction_uncertainty", "1.0", "`tune.friction_uncertainty` must be a number in [0, 1)"),
+    ("ms_max", "true", "`tune.ms_max` must be a positive number"),
+])  # fmt: skip
+def test_a_bad_tune_number_is_refused_before_any_work(tmp_path, capsys, key, value, message):
+    """Tuning options that must be numbers refuse YAML's `true` (an int to Python) and values out of
+    range, naming the option, before the paper identification."""
+    cfg = tmp_path / "configs" / "c.yaml"
+    cfg.parent.mkdir()
+    cfg.write_text(f"dataset: {_repo() / 'data' / 'hd2'}\ntune:\n  {key}: {value}\n")
+    assert _cli.main(["tune", str(cfg), "--out", str(tmp_path / "out")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out" / "tune.json").exists()

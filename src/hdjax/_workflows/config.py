@@ -30,6 +30,11 @@ class ConfigError(ValueError):
     mapping. A `ValueError`, so the commands report it as bad input (exit status 2)."""
 
 
+def is_number(value) -> bool:
+    """A YAML number: an int or float, not a bool (YAML's `true` is an int to Python)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def nearest(word: str, candidates: Iterable[str]) -> str | None:
     """The candidate closest to `word` (difflib ratio ≥ 0.6), or None."""
     match = difflib.get_close_matches(str(word), [str(c) for c in candidates], n=1, cutoff=0.6)

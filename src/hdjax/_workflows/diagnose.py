@@ -14,7 +14,7 @@ from .._model.effects import MODEL_FORM_NAMES
 from .._plant.simulate import Simulator
 from .._plant.stepper import VelocityImplicit
 from .artifacts import effects_to_dict
-from .config import section_options
+from .config import is_number, section_options
 from .fit import _options as fit_options, _tolerance, _whole_number
 from .io import atomic_write_json, write_results
 from .progress import task
@@ -44,7 +44,7 @@ def _share(opts: dict, key: str) -> float:
     """`diagnose.<key>`, a share or probability in [0, 1) (0 turns its rule off); anything else is
     refused, naming the key."""
     value = opts[key]
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and 0.0 <= float(value) < 1.0
+    ok = is_number(value) and 0.0 <= float(value) < 1.0
     if not ok:
         raise ValueError(f"config `diagnose.{key}` must be a number in [0, 1) (0 turns its rule off), got {value!r}.")
     return float(value)

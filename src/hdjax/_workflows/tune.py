@@ -74,7 +74,7 @@ from .._data.load import Dataset
 from .._model.effects import Effects
 from .._model.paper import EQ9_COEFFICIENTS, PARAMETER_NAMES, Parameters, Smoothing
 from .artifacts import read_extended_model, read_fit_json
-from .config import section_options
+from .config import is_number, section_options
 from .io import write_results
 from .progress import task
 
@@ -117,11 +117,11 @@ def _options(config: dict) -> dict:
     out = section_options(config, "tune", DEFAULTS)
     for k in ("duration", "locked_fraction", "free_fraction", "locked_sine_hz", "free_sine_hz", "relay_amplitude",
               "headroom", "ms_max", "model_pi_ms", "max_first_step"):  # fmt: skip
-        if not isinstance(out[k], (int, float)) or out[k] <= 0:
+        if not is_number(out[k]) or out[k] <= 0:
             raise ValueError(f"config `tune.{k}` must be a positive number, got {out[k]!r}.")
-    if not isinstance(out["friction_uncertainty"], (int, float)) or not 0 <= out["friction_uncertainty"] < 1:
+    if not is_number(out["friction_uncertainty"]) or not 0 <= out["friction_uncertainty"] < 1:
         raise ValueError(f"config `tune.friction_uncertainty` must be a number in [0, 1), got {out['friction_uncertainty']!r}.")
-    if not isinstance(out["margin_weight"], (int, float)) or out["margin_weight"] < 0:
+    if not is_number(out["margin_weight"]) or out["margin_weight"] < 0:
         raise ValueError(f"config `tune.margin_weight` must be a number >= 0, got {out['margin_weight']!r}.")
     if not isinstance(out["scale_references"], bool):
         raise ValueError(f"config `tune.scale_references` must be true or false, got {out['scale_references']!r}.")
@@ -131,9 +131,9 @@ def _options(config: dict) -> dict:
     if out["solver"] not in ("velocity_implicit", "rodas3"):
         raise ValueError(f"config `tune.solver` must be one of ['velocity_implicit', 'rodas3'], got {out['solver']!r}.")
     f = out["start_factors"]
-    if not isinstance(f, (list, tuple)) or not f or not all(isinstance(x, (int, float)) and x > 0 for x in f):
+    if not isinstance(f, (list, tuple)) or not f or not all(is_number(x) and x > 0 for x in f):
         raise ValueError(f"config `tune.start_factors` must be a non-empty list of positive numbers, got {f!r}.")
-    if out["current_limit"] is not None and (not isinstance(out["current_limit"], (int, float)) or out["current_limit"] <= 0):
+    if out["current_limit"] is not None and (not is_number(out["current_limit"]) or out["current_limit"] <= 0):
         raise ValueError(f"config `tune.current_limit` must be a positive number in A, got {out['current_limit']!r}.")
     return out
 
