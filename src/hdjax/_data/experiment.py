@@ -170,8 +170,22 @@ def take_experiments(batch: Experiment, positions) -> Experiment:
     """The experiments at `positions` (a list or integer array; repeats allowed) of a stacked
     batch, as a stacked batch with the same padding: its length stays that of `batch`, not that
     of the longest experiment taken."""
+    return take_rows(batch, positions)
+
+
+def take_rows(tree, positions):
+    """Every array leaf of `tree` at the leading-axis `positions` (repeats allowed). Concrete arrays
+    are indexed on the host with numpy: an eager `x[idx]` on a JAX array compiles a small gather
+    program (and its index arithmetic) for every leaf shape, about 5 XLA compilations a leaf, which
+    the commands paid once each in their start-up (2026-12-05). Inside a trace it is `x[idx]`."""
     idx = np.asarray(positions, dtype=int)
-    return jax.tree.map(lambda v: v[idx], batch)
+
+    def take(v):
+        if isinstance(v, jax.core.Tracer):
+            return v[idx]
+        return jnp.asarray(np.asarray(v)[idx])
+
+    return jax.tree.map(take, tree)
 
 
 def unstack_experiments(batch: Experiment) -> list[Experiment]:
@@ -179,7 +193,7 @@ def unstack_experiments(batch: Experiment) -> list[Experiment]:
     out = []
     for i in range(batch.time.shape[0]):
         one = jax.tree.map(lambda v: v[i], batch)
-        out.append(one.first(int(np.asarray(batch.mask[i]).sum())))
+        out.append(one.first(int(np.asarray(batch.mask)[i].sum())))
     return out
 
 

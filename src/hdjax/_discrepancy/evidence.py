@@ -123,12 +123,12 @@ def torque_balance_residuals(batch, traj, m, modes, p: Parameters, drive: Drive)
     N, Km, Jeff = float(drive.gear_ratio), float(drive.torque_constant), float(p.Jeff)
     for i in np.where(modes == "free")[0]:
         mi = m[i]
-        t = np.asarray(batch.time[i])[mi]
-        w = np.asarray(batch.motor_velocity[i])[mi]
-        th = np.asarray(traj.motor_position[i])[mi]
+        t = np.asarray(batch.time)[i][mi]
+        w = np.asarray(batch.motor_velocity)[i][mi]
+        th = np.asarray(traj.motor_position)[i][mi]
         if len(t) < 10 or np.ptp(th) < 4.0 * math.pi:
             continue
-        e = (Km * np.asarray(batch.current[i])[mi] - np.asarray(batch.torque[i])[mi] / N
+        e = (Km * np.asarray(batch.current)[i][mi] - np.asarray(batch.torque)[i][mi] / N
              - np.asarray(friction_torque(p, w)) - Jeff * np.gradient(w, t))
         keep = np.abs(w) > TB_MIN_SPEED
         if keep.sum() >= 10:
@@ -272,11 +272,11 @@ def residual_evidence(batch, traj, m, modes, sigma, p: Parameters, drive: Drive)
         sel = np.where(modes == md)[0]
         if not len(sel):
             continue
-        tors = np.concatenate([np.asarray(traj.torsion[i])[m[i]] for i in sel])
-        T = np.concatenate([np.asarray(traj.torque[i])[m[i]] for i in sel])
-        w = np.concatenate([np.asarray(traj.motor_velocity[i])[m[i]] for i in sel])
-        di = np.concatenate([np.gradient(np.asarray(batch.current[i])[m[i]]) for i in sel])
-        ts = np.concatenate([np.full(int(m[i].sum()), float(batch.start_time[i])) + np.asarray(batch.time[i])[m[i]] for i in sel])
+        tors = np.concatenate([np.asarray(traj.torsion)[i][m[i]] for i in sel])
+        T = np.concatenate([np.asarray(traj.torque)[i][m[i]] for i in sel])
+        w = np.concatenate([np.asarray(traj.motor_velocity)[i][m[i]] for i in sel])
+        di = np.concatenate([np.gradient(np.asarray(batch.current)[i][m[i]]) for i in sel])
+        ts = np.concatenate([np.full(int(m[i].sum()), float(batch.start_time[i])) + np.asarray(batch.time)[i][m[i]] for i in sel])
         rT = np.concatenate([res_T[i][m[i]] for i in sel])
         rw = np.concatenate([res_w[i][m[i]] for i in sel])
         covs = {"torsion": tors, "torsion^3": tors**3, "|T|sign(w)": np.abs(T) * np.sign(w), "di/dt": di, "session_time": ts}

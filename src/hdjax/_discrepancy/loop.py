@@ -599,7 +599,7 @@ def _data_context(p_base: Parameters, batch: Experiment, sigma, tachometer_lag_s
         "coulomb": 0.5 * (abs(float(p_base.Tsp)) + abs(float(p_base.Tsn))),
         "torque_noise": float(sigma[0]),
         "velocity_noise": float(sigma[1]),
-        "current_noise": max(float(np.median([white_noise_level(np.asarray(batch.current[e])[m[e]]) for e in range(n_exp)])),
+        "current_noise": max(float(np.median([white_noise_level(np.asarray(batch.current)[e][m[e]]) for e in range(n_exp)])),
                              1e-3 * float(np.max(np.abs(np.asarray(batch.current)[m])))),
         "torsion": float(np.max(np.abs(np.asarray(batch.torque)[m]))) / float(p_base.K1) or 1e-3,
         "torque_max": float(np.max(np.abs(np.asarray(batch.torque)[m]))),
@@ -1416,7 +1416,7 @@ def _setup(p_base: Parameters, drive: Drive, experiments: list[Experiment], batc
         # their residuals are the constant failure value of `experiment_residuals`: no information
         log(f"diagnose: WARNING: the base-model simulation failed on experiment(s) {failed.tolist()} "
             f"({type(simulator.solver).__name__}); they carry no information in this diagnosis")
-    th_span = np.array([np.ptp(np.asarray(traj.motor_position[e])[m[e]]) if m[e].any() else 0.0 for e in range(n_exp)])
+    th_span = np.array([np.ptp(np.asarray(traj.motor_position)[e][m[e]]) if m[e].any() else 0.0 for e in range(n_exp)])
     unresolved = {n_base + j: (c.index + 1) * th_span < 2.0 * math.pi for j, c in enumerate(cols) if c.index is not None}
     loop = _Loop(prob=prob, jac_prob=eqx.tree_at(lambda q: q.simulator, prob, loose), p_base=p_base, batch=batch,
                  sig_exp=_record_noise(experiments, modes, sigma, per_record_noise), m=m, modes=modes, cols=cols,

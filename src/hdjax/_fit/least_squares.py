@@ -33,7 +33,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 from numpy.typing import ArrayLike
 
-from .._data.experiment import Experiment
+from .._data.experiment import Experiment, take_rows
 from .._model.effects import Effects
 from .._model.paper import PARAMETER_NAMES, Drive, Parameters
 from .._plant.sharding import (
@@ -494,7 +494,7 @@ def fit_parameters(
     cov_robust, how = robust_covariance(J, r, blocks, lambda: cov_white)  # residual rows: experiment, channel, sample
     method = "block_sandwich" if how == "block_sandwich" else "white"
     # delta method: d p / d theta
-    dp = np.asarray(jax.jacfwd(lambda t: jnp.stack([getattr(pmap.to_model(t, p0), k) for k in free]))(jnp.asarray(theta)))
+    dp = np.asarray(_model_jacobian(jnp.asarray(theta), pmap, p0, tuple(free)))
     cov = dp @ cov_robust @ dp.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     se_white = np.sqrt(np.clip(np.diag(dp @ cov_white @ dp.T), 0, None))
@@ -624,7 +624,7 @@ def fit_per_experiment(
     with count_progress("per-experiment LM fits", n_exp, unit="experiments") as done:
         for lo in range(0, n_exp, chunk):
             take = order[lo:lo + chunk]
-            part, n_real = pad_experiments(jax.tree.map(lambda x: x[take], batch), chunk)
+            part, n_real = pad_experiments(take_rows(batch, take), chunk)
             if mesh is not None:
                 part, _ = shard_experiments(part, mesh)
             pad = chunk - n_real  # dummies: slots off
@@ -638,12 +638,15 @@ def fit_per_experiment(
                     done()
     back = np.argsort(order)  # the fits in the batch's order
     z_final, steps, r, stop = (np.concatenate(xs)[back] for xs in zip(*parts))
-    idx, on = jnp.asarray(slot_index), jnp.asarray(slot_on)
+    idx, on = np.asarray(slot_index), np.asarray(slot_on)
     ok = (stop != "max_steps") & active
     rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
     values = np.full(mask.shape, np.nan)
+    theta0_host = np.asarray(theta0)
     for e in np.flatnonzero(ok):
-        p = pmap.to_model(_full_theta(jnp.asarray(z_final[e]), theta0, idx[e], on[e]), p0)
+        theta_e = theta0_host.copy()  # `_full_theta` on the host (eagerly in JAX it compiled a scatter)
+        np.add.at(theta_e, idx[e], on[e] * z_final[e])
+        p = pmap.to_model(jnp.asarray(theta_e), p0)
         for k, name in enumerate(pmap.fields):
             if mask[e, k]:
                 values[e, k] = float(getattr(p, name))
@@ -818,6 +821,13 @@ def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rto
     # data enter as arguments (never as closed-over constants, which XLA would try to constant-fold)
     lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)  # pyright: ignore[reportCallIssue]  rtol/atol/norm are properties
     return _stepped_least_squares(_lm_objective(residuals), lm, max_steps=max_steps, finish=finish, mesh=mesh)
+
+
+@eqx.filter_jit
+def _model_jacobian(theta, pmap, p0, free: tuple[str, ...]):
+    """d(model fields `free`)/dθ at θ: one compiled program (run eagerly, `jacfwd` compiled a dozen
+    small ones)."""
+    return jax.jacfwd(lambda t: jnp.stack([getattr(pmap.to_model(t, p0), k) for k in free]))(theta)
 
 
 def _full_theta(z, theta0, idx, on):

@@ -59,7 +59,7 @@ import scipy.integrate
 import scipy.signal
 from jaxtyping import Array, Bool, Float
 
-from .._data.experiment import Experiment, stack_experiments
+from .._data.experiment import Experiment, stack_experiments, take_rows
 from .._model.paper import PARAMETER_NAMES, Drive, Parameters, Smoothing, friction_basis
 from .._model.smooth import smooth_signed_power
 
@@ -181,13 +181,15 @@ def _prepare(experiments, drive, cutoff_hz, filter_order, notes):
     Km = float(drive.torque_constant)
     cols = {k: [] for k in _Prepared.__dataclass_fields__}
     medians = []
+    # indexed per experiment on the host (eager JAX indexing compiles a small gather program per shape)
+    host = {f: np.asarray(getattr(batch, f)) for f in ("mask", "time", "motor_velocity", "torque", "current", "motor_position", "has_motor_position")}
     for k in range(len(experiments)):
-        m = np.asarray(batch.mask[k])
+        m = host["mask"][k]
         n = int(m.sum())
-        t = np.asarray(batch.time[k])[:n]
-        w_raw = np.asarray(batch.motor_velocity[k])[:n]
-        T_raw = np.asarray(batch.torque[k])[:n]
-        cur = np.asarray(batch.current[k])[:n]
+        t = host["time"][k][:n]
+        w_raw = host["motor_velocity"][k][:n]
+        T_raw = host["torque"][k][:n]
+        cur = host["current"][k][:n]
         dt = float(np.median(np.diff(t)))
         fs = 1.0 / dt
         if cutoff_hz is None or cutoff_hz >= 0.5 * fs:
@@ -201,8 +203,8 @@ def _prepare(experiments, drive, cutoff_hz, filter_order, notes):
             w = _lowpass(w_raw, fs, cutoff_hz, filter_order)
             T = _lowpass(T_raw, fs, cutoff_hz, filter_order)
         acc = np.gradient(w, t)
-        if float(batch.has_motor_position[k]) > 0.5:
-            theta_m = np.asarray(batch.motor_position[k])[:n]
+        if float(host["has_motor_position"][k]) > 0.5:
+            theta_m = host["motor_position"][k][:n]
         else:
             theta_m = scipy.integrate.cumulative_trapezoid(w_raw, t, initial=0.0)
         vals = {
@@ -223,8 +225,7 @@ def _prepare(experiments, drive, cutoff_hz, filter_order, notes):
 
 
 def _take(prepared: _Prepared, idx) -> _Prepared:
-    idx = np.asarray(idx, dtype=int)
-    return jax.tree_util.tree_map(lambda x: x[idx], prepared)
+    return take_rows(prepared, idx)
 
 
 # --------------------------------------------------------------------------------------------

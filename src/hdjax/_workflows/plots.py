@@ -51,7 +51,7 @@ def fit_figures(out, p: Parameters, paper, full, traj, modes, files, drive, expe
     # Fig. 3: hysteresis torsion curve of the locked record with the largest torque, with the
     # paper's two compliance regressions of that record (each its own least-squares fit)
     if cons:
-        j = max(cons, key=lambda j: float(np.max(np.abs(np.asarray(full.torque[j])[m[j]]))))
+        j = max(cons, key=lambda j: float(np.max(np.abs(np.asarray(full.torque)[j][m[j]]))))
         loop = hysteresis_curves(paper, experiments[j], drive, j)
         fig, ax = plt.subplots(figsize=(6, 4.5))
         ax.plot(loop["torsion"] * 1e3, loop["torque"], ".", ms=2, color="0.6", label="measured")
@@ -69,8 +69,8 @@ def fit_figures(out, p: Parameters, paper, full, traj, modes, files, drive, expe
     if pick:
         fig, axes = plt.subplots(len(pick), 1, figsize=(8, 2.2 * len(pick)), squeeze=False)
         for ax, j in zip(axes[:, 0], pick):
-            ax.plot(t[j][m[j]], np.asarray(full.torque[j])[m[j]], color="0.6", lw=0.8, label="measured")
-            ax.plot(t[j][m[j]], np.asarray(traj.torque[j])[m[j]], color="C0", lw=1.2, label="simulated")
+            ax.plot(t[j][m[j]], np.asarray(full.torque)[j][m[j]], color="0.6", lw=0.8, label="measured")
+            ax.plot(t[j][m[j]], np.asarray(traj.torque)[j][m[j]], color="C0", lw=1.2, label="simulated")
             ax.set_ylabel("torque (N·m)")
             ax.set_title(f"{files[j]} ({modes[j]})", fontsize=9)
             ax.grid(alpha=0.3)
@@ -86,8 +86,8 @@ def fit_figures(out, p: Parameters, paper, full, traj, modes, files, drive, expe
         for c, (j, md) in enumerate(pairs):
             for r_, (ch, unit) in enumerate((("motor_velocity", "rad/s"), ("torque", "N·m"))):
                 ax = axes[r_, c]
-                ax.plot(t[j][m[j]], np.asarray(getattr(full, ch)[j])[m[j]], color="0.6", lw=0.8, label="measured")
-                ax.plot(t[j][m[j]], np.asarray(getattr(traj, ch)[j])[m[j]], color="C3", lw=1.2, ls="--", label="simulated")
+                ax.plot(t[j][m[j]], np.asarray(getattr(full, ch))[j][m[j]], color="0.6", lw=0.8, label="measured")
+                ax.plot(t[j][m[j]], np.asarray(getattr(traj, ch))[j][m[j]], color="C3", lw=1.2, ls="--", label="simulated")
                 ax.set_ylabel(f"{ch.replace('_', ' ')} ({unit})")
                 ax.set_xlabel("time (s)")
                 ax.grid(alpha=0.3)
@@ -229,12 +229,12 @@ def tune_figures(out, traj, sim, ref_info, search, res, ilim, kind) -> list[str]
     names = []
     fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
     for j, (ax, info) in enumerate(zip(axes.flat, ref_info)):
-        t = np.asarray(traj["tuned"]["time"][j])
-        ax.plot(t, np.asarray(traj["tuned"]["reference"][j]), "k--", lw=1.2, label="reference")
+        t = np.asarray(traj["tuned"]["time"])[j]
+        ax.plot(t, np.asarray(traj["tuned"]["reference"])[j], "k--", lw=1.2, label="reference")
         for name in CONTROLLERS:
-            ax.plot(t, np.asarray(traj[name]["measured_torque"][j]), color=COLORS[name], lw=0.5, alpha=0.35)
-            ax.plot(t, np.asarray(traj[name]["torque"][j]), color=COLORS[name], lw=1.2, label=f"{LABELS[name]}: {kind}, true torque")
-        ax.plot(t, np.asarray(sim.torque[j]), ":", color="tab:green", lw=1.3, label="tuned: tuning model, simulated")
+            ax.plot(t, np.asarray(traj[name]["measured_torque"])[j], color=COLORS[name], lw=0.5, alpha=0.35)
+            ax.plot(t, np.asarray(traj[name]["torque"])[j], color=COLORS[name], lw=1.2, label=f"{LABELS[name]}: {kind}, true torque")
+        ax.plot(t, np.asarray(sim.torque)[j], ":", color="tab:green", lw=1.3, label="tuned: tuning model, simulated")
         ax.set_title(f"{info['name'].replace('_', ' ')} ({info['amplitude']:.3g} N·m)")
         ax.set_ylabel("output torque (N·m)")
     for ax in axes[1]:
@@ -246,10 +246,10 @@ def tune_figures(out, traj, sim, ref_info, search, res, ilim, kind) -> list[str]
 
     fig, axes = plt.subplots(2, 2, figsize=(11, 7), sharex=True)
     for j, (ax, info) in enumerate(zip(axes.flat, ref_info)):
-        t = np.asarray(traj["tuned"]["time"][j])
+        t = np.asarray(traj["tuned"]["time"])[j]
         for name in CONTROLLERS:
-            ax.plot(t, np.asarray(traj[name]["current"][j]), color=COLORS[name], lw=1.0, label=f"{LABELS[name]}: {kind}")
-        ax.plot(t, np.asarray(sim.current[j]), ":", color="tab:green", lw=1.2, label="tuned: tuning model, simulated")
+            ax.plot(t, np.asarray(traj[name]["current"])[j], color=COLORS[name], lw=1.0, label=f"{LABELS[name]}: {kind}")
+        ax.plot(t, np.asarray(sim.current)[j], ":", color="tab:green", lw=1.2, label="tuned: tuning model, simulated")
         ax.axhline(ilim, color="0.5", lw=0.8, ls="--", label="current limit")
         ax.axhline(-ilim, color="0.5", lw=0.8, ls="--")
         ax.set_title(info["name"].replace("_", " "))
@@ -295,8 +295,8 @@ def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
         picks = most_improved_records(batch, d.traces)
         fig, axes = plt.subplots(len(picks), 1, figsize=(8.5, 2.8 * len(picks)), squeeze=False)
         for ax, (j, channel, reduction) in zip(axes[:, 0], picks):
-            t = np.asarray(batch.time[j])[m[j]]
-            meas = np.asarray(getattr(batch, channel)[j])[m[j]]
+            t = np.asarray(batch.time)[j][m[j]]
+            meas = np.asarray(getattr(batch, channel))[j][m[j]]
             base = d.traces[f"{channel}_base"][j][m[j]]
             res = meas - base
             ax.plot(t, res, color="0.75", lw=0.6, label="measured − paper model")
@@ -319,7 +319,7 @@ def diagnosis_figures(out, dataset, exps, files, d) -> list[str]:
             j = next((j for j, _, _ in picks if not free[j]), int(np.argmax(~free)))
             tw = d.traces["torsion_extended"][j][m[j]]
             fig, ax = plt.subplots(figsize=(6, 4.5))
-            ax.plot(tw * 1e3, np.asarray(batch.torque[j])[m[j]], color="0.6", lw=0.6, label="measured torque")
+            ax.plot(tw * 1e3, np.asarray(batch.torque)[j][m[j]], color="0.6", lw=0.6, label="measured torque")
             ax.plot(tw * 1e3, d.traces["torque_base"][j][m[j]], color="C0", lw=1.0, label="paper model")
             ax.plot(tw * 1e3, d.traces["torque_extended"][j][m[j]], color="C3", lw=1.0, ls="--", label="extended model")
             ax.set_xlabel("torsion Δθ of the extended model (mrad)")
@@ -500,7 +500,7 @@ def most_improved_records(batch, traces: dict) -> list[tuple[int, str, float]]:
             for channel in _BEFORE_AFTER_CHANNELS:
                 if f"{channel}_base" not in traces or not m[j].any():
                     continue
-                meas = np.asarray(getattr(batch, channel)[j])[m[j]]
+                meas = np.asarray(getattr(batch, channel))[j][m[j]]
                 before = float(np.sum((meas - traces[f"{channel}_base"][j][m[j]]) ** 2))
                 after = float(np.sum((meas - traces[f"{channel}_extended"][j][m[j]]) ** 2))
                 share = 1.0 - after / before if before > 0 else 0.0
