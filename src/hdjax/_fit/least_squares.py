@@ -45,7 +45,7 @@ from .._plant.sharding import (
     replicated,
     shard_experiments,
 )
-from .._plant.simulate import Simulator, is_fixed_cost, simulate
+from .._plant.simulate import Simulator, Trajectory, is_fixed_cost, simulate
 from .._workflows.progress import count_progress, lm_progress
 from .covariance import robust_covariance, time_blocks, white_covariance
 from .lm import MarquardtLM
@@ -183,7 +183,11 @@ def experiment_residuals(
 ) -> Float[Array, "3 time"]:
     """Noise-weighted residuals of one experiment, shape (3, time); zero on padding and on channels
     that were not measured."""
-    tr = simulate(p, drive, exp, effects=effects, simulator=simulator)
+    return trajectory_residuals(simulate(p, drive, exp, effects=effects, simulator=simulator), exp, sigma)
+
+
+def trajectory_residuals(tr: Trajectory, exp: Experiment, sigma: Float[Array, " 3"]) -> Float[Array, "3 time"]:
+    """`experiment_residuals` of a simulated trajectory `tr` of `exp`."""
     m = exp.mask
     use_pos = exp.free * exp.has_output_position
     r = jnp.stack(
