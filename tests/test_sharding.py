@@ -68,17 +68,33 @@ def _cpu_env(n_devices: int = 1) -> dict:
     return env
 
 
-def _run(n_devices: int) -> dict:
-    env = _cpu_env(n_devices)
+def _start(n_devices: int) -> subprocess.Popen:
     here = str(pathlib.Path(__file__).resolve().parent)
-    out = subprocess.run([sys.executable, "-c", SCRIPT, here], env=env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return subprocess.Popen([sys.executable, "-c", SCRIPT, here], env=_cpu_env(n_devices), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _result(proc: subprocess.Popen) -> dict:
+    try:
+        out, err = proc.communicate(timeout=300)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+    assert proc.returncode == 0, err[-3000:]
+    return json.loads(out.strip().splitlines()[-1])
 
 
 @pytest.fixture(scope="module")
 def runs():
-    return _run(1), _run(2)
+    """Both processes at once (each compiles on one thread most of its time)."""
+    procs = [_start(1), _start(2)]
+    try:
+        return tuple(_result(p) for p in procs)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
 
 
 def test_batch_is_padded_and_spread_over_both_devices(runs):
