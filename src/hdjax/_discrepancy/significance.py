@@ -183,7 +183,11 @@ def drift_trend_test(course, level, information, *, max_enumerated: int = 8, n_s
     assumed noise level. Every permutation up to `max_enumerated` records (8! = 40 320), else
     `n_sampled` drawn with `seed`. The test assumes the records' misfits do not depend on when they
     were recorded (the order of the session is unrelated to the kind of test); a session that runs
-    its tests in order of kind or amplitude needs that order randomised.
+    its tests in order of kind or amplitude needs that order randomised. Measured on the 57
+    screenings of the 40-dataset benchmark with the start times re-assigned in order of each free
+    record's information (a session that runs its slow tests first): one of 57 reached p ≤ 0.01
+    (0.008, a cubic stiffness), and the p-values lean low (median about 0.2 instead of 0.5); in the
+    reverse order none did (2026-12-05).
 
     Returns (p-value, slope): the share of orderings whose t-value is at least the observed one,
     and the slope (the drift's amplitude in the units of `level` per unit of `course`). p = 1 with
