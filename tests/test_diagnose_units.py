@@ -5,7 +5,7 @@ import pytest
 
 from hdjax import Significance, diagnose_effects
 from hdjax._discrepancy.loop import FIXED_IN_FOLDS, _Column, _drift_share, _FoldFits, _judge, _refusal, _solve_normal, held_in_folds, near_misses
-from hdjax._discrepancy.significance import drift_trend_test
+from hdjax._discrepancy.significance import OUTPUT_ERROR_RULES, drift_trend_test
 from helpers import hd2
 
 
@@ -626,6 +626,19 @@ def test_drift_trend_test_is_not_decided_by_one_record_with_much_information():
     _, t = _weighted_slope_t(course[None], level, info)
     _, t_perm = _weighted_slope_t(course[orders], level, info)
     assert np.mean(t_perm >= t[0] - 1e-12) > 0.01
+
+
+def test_a_trend_contradicted_by_the_held_out_fits_names_nothing():
+    """The trend route names a drift at p <= `drift_trend_p` unless its held-out fits move the records'
+    own levels the wrong way (a negative between-record share: variant-bench seed 5051, clean of
+    drifts, p 0.0049 with share -0.84). A share of 0 (a fold fit of beta with the unphysical sign,
+    bench seed 5022's true drift) or no share says nothing either way; with the route off nothing
+    is named by it."""
+    rule = OUTPUT_ERROR_RULES
+    assert rule.names_by_trend(0.0068, 0.68) and rule.names_by_trend(0.0089, 0.0) and rule.names_by_trend(0.005, None)
+    assert not rule.names_by_trend(0.0049, -0.84)
+    assert not rule.names_by_trend(0.011, 0.9)  # above the level
+    assert not Significance().names_by_trend(0.0001, 0.9)  # drift_trend_p = 0: no trend route
 
 
 def test_the_report_says_a_drift_named_by_its_trend_raises_the_held_out_error():

@@ -1172,9 +1172,11 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
         drift = share.get(c)
         if drift is not None:
             s["between_record_share"] = drift
-        trend_named = c in trend and trend[c][0] <= rule.drift_trend_p
+        trend_named = c in trend and rule.names_by_trend(trend[c][0], drift)
         if c in trend:
             s["trend_p_value"], s["trend_amplitude"] = trend[c]
+            if trend[c][0] <= rule.drift_trend_p and not trend_named:
+                s["trend_contradicted"] = True  # by a negative between-record share of its held-out fits
         if simulate_all or trend_named or (len(raw_after_of) < n_simulated
                                            and (predicted[c] > SIMULATED_FROM * rule.min_relative_gain
                                                 or rule.drift_is_large(drift))):
@@ -1208,6 +1210,7 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
                   if s["acting_mode_gain_without_best"] is not None else "") + ")" if s["simulated"] else "")
             + (f" (between-record share {drift:.2f})" if drift is not None else "")
             + (f" (trend p {s['trend_p_value']:.4f}, amplitude {s['trend_amplitude']:+.4f})" if "trend_p_value" in s else "")
+            + (" trend contradicted by the held-out fits (negative share)" if s.get("trend_contradicted") else "")
             + (" named by its between-record trend" if s.get("named_by") == "between_record_trend" else "")
             + (f" contradicted by held-out experiment {s['contradicted_by']}" if s.get("contradicted_by") is not None else "")
             + (f" fitted with the unphysical sign of {PHYSICAL_SIGN[c][0]}" if s.get("physical_sign") is False else "")
@@ -1716,7 +1719,8 @@ def diagnose(
     share of their error instead, when fewer, at least two (default 0.02; 0: half the mode's).
     `drift_trend_p`: a drift over the session (`thermal_drift`) is named also when its
     between-record trend test gives at most this p-value (`Significance.drift_trend_p`,
-    `_drift_trend_of`; default 0.01; 0: the held-out rules alone, the loop before 2026-12-05).
+    `_drift_trend_of`; default 0.01; 0: the held-out rules alone, the loop before 2026-12-05) and
+    its held-out fits do not contradict the trend (`Significance.names_by_trend`).
     `reuse_jacobian`: later rounds reuse the first round's Jacobian columns
     (re-whitened by their own noise model), computing only columns not seen yet.
     `labels`: a name per experiment (its file) for the texts of `unexplained` (default
