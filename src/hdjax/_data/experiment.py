@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, Bool, Float
 
 MODES = ("constrained", "free", "friction")
@@ -181,7 +182,7 @@ def take_rows(tree, positions):
     idx = np.asarray(positions, dtype=int)
 
     def take(v):
-        if isinstance(v, jax.core.Tracer):
+        if isinstance(v, Tracer):
             return v[idx]
         return jnp.asarray(np.asarray(v)[idx])
 
