@@ -57,7 +57,10 @@ NOT_YET = {
                      "improved, +18 % of it in the one free record recorded early in the session (185 s; beta = 0.011, "
                      "tau = 510 s: under 0.5 % of the viscous friction in every other free record). The between-record "
                      "trend test (2026-12-05) cannot name it on 4 free records (smallest p 1/4! = 0.042); at full size "
-                     "(seed 907) it gave p 0.011, amplitude 0.0104 against the hidden 0.011: just above its 0.01",
+                     "(seed 907) it gave p 0.011, amplitude 0.0104 against the hidden 0.011: just above its 0.01. Why (2026-12-05, "
+                     "fifty-seventh session): three of the 8 free records have ~1e-3 of the median's information and the "
+                     "drift shows in one early record (course 0.79, level 0.0053 against +-0.001 elsewhere); a permutation "
+                     "test cannot make one record worth more than about 1/8",
 }
 
 
