@@ -54,17 +54,21 @@ def _timed(f, *a, repeat=3):
     return min(ts), out
 
 
-def run(name, ds, n_records, substeps, corrector=True):
+def _records(ds, n_records):
+    """The first `n_records` // 2 locked and the rest free records of `ds` as a batch, with its mask,
+    the dataset's true parameters, its torque and tachometer noise σ, and the two counts."""
     idx = ds.dynamic_indices()
     locked = [i for i in idx if ds.modes[i] == "constrained"][: n_records // 2]
     free = [i for i in idx if ds.modes[i] == "free"][: n_records - len(locked)]
-    exps = [ds.experiments[i] for i in locked + free]
-    batch = hdjax.stack_experiments(exps)
-    mask = np.asarray(batch.mask)
+    batch = hdjax.stack_experiments([ds.experiments[i] for i in locked + free])
     p = hdjax.Parameters.from_dict(ds.truth["parameters"])
     noise = ds.truth.get("sensors", ds.truth.get("noise", {}))
-    sT = float(noise.get("torque_noise", 0.5))
-    sw = float(noise.get("tacho_noise", 0.02))
+    sT, sw = float(noise.get("torque_noise", 0.5)), float(noise.get("tacho_noise", 0.02))
+    return batch, np.asarray(batch.mask), p, sT, sw, len(locked), len(free)
+
+
+def run(name, ds, n_records, substeps, corrector=True):
+    batch, mask, p, sT, sw, n_locked, n_free = _records(ds, n_records)
     sim = eqx.filter_jit(hdjax.simulate_batch)
 
     def jac(simulator):
@@ -85,7 +89,7 @@ def run(name, ds, n_records, substeps, corrector=True):
         e = (np.asarray(a) - np.asarray(b)) * mask / s
         return np.sqrt((e**2).sum(1) / mask.sum(1)), np.abs(e).max(1)
 
-    print(f"\n{name}: {len(locked)} locked + {len(free)} free records, {int(mask.sum())} samples")
+    print(f"\n{name}: {n_locked} locked + {n_free} free records, {int(mask.sum())} samples")
     print(f"{'solver':>22} {'RMS T/σ':>8} {'RMS ω/σ':>8} {'max T/σ':>8} {'max ω/σ':>8} {'sim s':>7} {'jac s':>7} {'RMS T/σ vs Rodas3':>18}")
     for m in substeps:
         s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=m, corrector=corrector))
@@ -107,14 +111,7 @@ def run_effects(ds, n_records, substeps, corrector=True):
     """Accuracy against m = 128 with each effect on (shipped HD2 records, truth parameters)."""
     from hdjax.rig import hide_effect, station_hd2
 
-    idx = ds.dynamic_indices()
-    locked = [i for i in idx if ds.modes[i] == "constrained"][: n_records // 2]
-    free = [i for i in idx if ds.modes[i] == "free"][: n_records - len(locked)]
-    batch = hdjax.stack_experiments([ds.experiments[i] for i in locked + free])
-    mask = np.asarray(batch.mask)
-    p = hdjax.Parameters.from_dict(ds.truth["parameters"])
-    noise = ds.truth.get("sensors", ds.truth.get("noise", {}))
-    sT, sw = float(noise.get("torque_noise", 0.5)), float(noise.get("tacho_noise", 0.02))
+    batch, mask, p, sT, sw, n_locked, n_free = _records(ds, n_records)
     sim = eqx.filter_jit(hdjax.simulate_batch)
     station = station_hd2()
 
@@ -122,8 +119,8 @@ def run_effects(ds, n_records, substeps, corrector=True):
         e = (np.asarray(a) - np.asarray(b)) * mask / s
         return np.sqrt((e**2).sum(1) / mask.sum(1)).max(), np.abs(e).max()
 
-    print(f"\nshipped data/hd2 with one SPEC §4 effect at the rig's reference magnitude: {len(locked)} locked + "
-          f"{len(free)} free records; worst record's RMS error (and the largest sample error) in σ against m = 128")
+    print(f"\nshipped data/hd2 with one SPEC §4 effect at the rig's reference magnitude: {n_locked} locked + "
+          f"{n_free} free records; worst record's RMS error (and the largest sample error) in σ against m = 128")
     print(f"{'effect':>28} " + " ".join(f"{'m=' + str(m) + ' T/σ':>16} {'ω/σ':>16}" for m in substeps))
     worst = {m: 0.0 for m in substeps}
     for name in hdjax.EFFECT_NAMES:

@@ -1175,7 +1175,7 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
         trend_named = c in trend and rule.names_by_trend(trend[c][0], drift)
         if c in trend:
             s["trend_p_value"], s["trend_amplitude"] = trend[c]
-            if trend[c][0] <= rule.drift_trend_p and not trend_named:
+            if rule.names_by_trend(trend[c][0], None) and not trend_named:
                 s["trend_contradicted"] = True  # by a negative between-record share of its held-out fits
         if simulate_all or trend_named or (len(raw_after_of) < n_simulated
                                            and (predicted[c] > SIMULATED_FROM * rule.min_relative_gain

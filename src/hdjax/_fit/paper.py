@@ -224,10 +224,6 @@ def _prepare(experiments, drive, cutoff_hz, filter_order, notes):
     return prepared, free, np.asarray(medians)
 
 
-def _take(prepared: _Prepared, idx) -> _Prepared:
-    return take_rows(prepared, idx)
-
-
 # --------------------------------------------------------------------------------------------
 # Masked least squares (normal equations on normalised columns)
 
@@ -414,7 +410,7 @@ def _compliance_stage(prepared, constrained_idx, alpha, alpha_bounds, nonlinear,
         )
         return
     assert prepared is not None  # None only without experiments, when every index list is empty
-    sub = _take(prepared, constrained_idx)
+    sub = take_rows(prepared, constrained_idx)
     K1, Tst, c, lam = (np.asarray(x) for x in _compliance_linear(sub, alpha))
     for j, k in enumerate(constrained_idx):
         if not (lam[j] > _COND_FLOOR and np.isfinite(K1[j]) and np.isfinite(Tst[j])):
@@ -489,7 +485,7 @@ def _high_velocity_stage(
         )
         return
     assert prepared is not None  # None only without experiments, when every index list is empty
-    sub = _take(prepared, free_idx)
+    sub = take_rows(prepared, free_idx)
     theta, active, lam, npos, nneg = (
         np.asarray(x) for x in _friction_high(sub, Tss2, threshold, min_samples, smoothing)
     )
@@ -548,7 +544,7 @@ def _stribeck_stage(
         notes.append("Tssn1 undetermined: Tvn/Tsn (negative direction) were not identified.")
     fixed_arr = jnp.asarray([fixed[n] if math.isfinite(fixed[n]) else 0.0 for n in HIGH_VELOCITY_NAMES])
     assert prepared is not None  # None only without experiments, when every index list is empty
-    sub = _take(prepared, low_idx)
+    sub = take_rows(prepared, low_idx)
     theta, active, lam, npos, nneg = (
         np.asarray(x)
         for x in _friction_stribeck(

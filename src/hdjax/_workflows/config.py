@@ -35,6 +35,14 @@ def is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def unit_share(value, where: str, note: str = "") -> float:
+    """`value` of the config option `where` (e.g. `tune.friction_uncertainty`) as a float in
+    [0, 1); anything else is refused, naming the option (`note` follows the range in the message)."""
+    if not (is_number(value) and 0.0 <= float(value) < 1.0):
+        raise ValueError(f"config `{where}` must be a number in [0, 1){note}, got {value!r}.")
+    return float(value)
+
+
 def nearest(word: str, candidates: Iterable[str]) -> str | None:
     """The candidate closest to `word` (difflib ratio ≥ 0.6), or None."""
     match = difflib.get_close_matches(str(word), [str(c) for c in candidates], n=1, cutoff=0.6)

@@ -14,7 +14,7 @@ from .._model.effects import MODEL_FORM_NAMES
 from .._plant.simulate import Simulator
 from .._plant.stepper import VelocityImplicit
 from .artifacts import effects_to_dict
-from .config import is_number, section_options
+from .config import section_options, unit_share
 from .fit import _options as fit_options, _tolerance, _whole_number
 from .io import atomic_write_json, write_results
 from .progress import task
@@ -38,16 +38,6 @@ DEFAULTS = {
     "physical_sign": OUTPUT_ERROR_RULES.physical_sign,  # a signed effect (beta, mu, K3, Th, delay > 0, SPEC §4) only with that sign
     "measure_tachometer_lag": True,  # hold the tachometer's lag measured against the output encoder (not fitted)
 }
-
-
-def _share(opts: dict, key: str) -> float:
-    """`diagnose.<key>`, a share or probability in [0, 1) (0 turns its rule off); anything else is
-    refused, naming the key."""
-    value = opts[key]
-    ok = is_number(value) and 0.0 <= float(value) < 1.0
-    if not ok:
-        raise ValueError(f"config `diagnose.{key}` must be a number in [0, 1) (0 turns its rule off), got {value!r}.")
-    return float(value)
 
 
 def _run_diagnose(paper, dataset, exps, files, opts, simulator, log):
@@ -164,7 +154,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     opts = section_options(config, "diagnose", DEFAULTS)
     simulator = diagnosis_simulator(opts)  # a bad solver, substeps or tolerance is refused before any work
     for key in ("untouched_record_change", "drift_trend_p"):  # and a bad share or level
-        opts[key] = _share(opts, key)
+        opts[key] = unit_share(opts[key], f"diagnose.{key}", " (0 turns its rule off)")
     drive, exps, files, _ = dataset.dynamic_part("diagnose", at_least=2)  # two: it holds experiments out
     fit_opts = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
     log(f"[1/3] paper's identification on {len(exps)} experiments (start of the base model)")

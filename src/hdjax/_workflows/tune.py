@@ -74,7 +74,7 @@ from .._data.load import Dataset
 from .._model.effects import Effects
 from .._model.paper import EQ9_COEFFICIENTS, PARAMETER_NAMES, Parameters, Smoothing
 from .artifacts import read_extended_model, read_fit_json
-from .config import is_number, section_options
+from .config import is_number, section_options, unit_share
 from .io import write_results
 from .progress import task
 
@@ -119,8 +119,7 @@ def _options(config: dict) -> dict:
               "headroom", "ms_max", "model_pi_ms", "max_first_step"):  # fmt: skip
         if not is_number(out[k]) or out[k] <= 0:
             raise ValueError(f"config `tune.{k}` must be a positive number, got {out[k]!r}.")
-    if not is_number(out["friction_uncertainty"]) or not 0 <= out["friction_uncertainty"] < 1:
-        raise ValueError(f"config `tune.friction_uncertainty` must be a number in [0, 1), got {out['friction_uncertainty']!r}.")
+    out["friction_uncertainty"] = unit_share(out["friction_uncertainty"], "tune.friction_uncertainty")
     if not is_number(out["margin_weight"]) or out["margin_weight"] < 0:
         raise ValueError(f"config `tune.margin_weight` must be a number >= 0, got {out['margin_weight']!r}.")
     if not isinstance(out["scale_references"], bool):
