@@ -197,7 +197,12 @@ def test_measured_angle_reproduces_the_simulated_one_and_converges(mode, amp):
         return tr
 
     errs = [max(_errors(sim(m, rec), ref)) for m in (2, 8, 32)]
-    assert errs[0] < 0.1 and errs[2] < errs[0], errs
+    assert max(errs) < 0.1, errs
+    # the step's own error (against the same record at 64 substeps) falls as the step shrinks; the
+    # difference to `ref` keeps the interpolated angle's (measured 2026-12-06: 0.015 σ at every m)
+    own = sim(64, rec)
+    steps = [max(_errors(sim(m, rec), own)) for m in (2, 8, 32)]
+    assert steps[0] > steps[1] > steps[2], steps
     np.testing.assert_array_equal(np.asarray(sim(4, rec).motor_position), np.asarray(rec.motor_position))
     shifted = _with_angles(exp, eqx.tree_at(lambda t: t.motor_position, ref, ref.motor_position + np.pi / 4))
     assert max(_errors(sim(4, shifted), ref)) > 1.0

@@ -174,6 +174,76 @@ def _branch_friction(w, sign, P):
     return viscous + sign * ramp * mag
 
 
+def _mean_gauss(a, b):
+    """Mean of e^{−u²} over [a, b] (a, b ≥ 0, or both ≤ 0): the Taylor series about the midpoint where
+    the interval is short (no cancellation, whatever its width relative to the values), the erfc
+    difference otherwise."""
+    lo, hi = jnp.minimum(jnp.abs(a), jnp.abs(b)), jnp.maximum(jnp.abs(a), jnp.abs(b))
+    m, d = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    short = d * (1.0 + m) < 0.02
+    m2, d2 = m * m, d * d
+    series = jnp.exp(-m2) * (1.0 + (4.0 * m2 - 2.0) * d2 / 6.0 + (16.0 * m2 * m2 - 48.0 * m2 + 12.0) * d2 * d2 / 120.0)
+    erfc = jax.scipy.special.erfc
+    wide = 0.5 * jnp.sqrt(jnp.pi) * (erfc(lo) - erfc(hi)) / jnp.where(short, 1.0, hi - lo)
+    return jnp.where(short, series, wide)
+
+
+def _side_mean_friction(a, b, sign, P):
+    """Mean friction (N·m) on the branch `sign` while ω_m runs linearly from a to b (both on that
+    side, or 0): eq. 9's Coulomb term exactly, the viscous term by its two end values (exact for a
+    linear law), the Stribeck term by the mean of e^{−(ω/Tss2)²} (`_mean_gauss`) where it is
+    implicit (its lagged value otherwise)."""
+    pos = sign > 0
+    Tc = jnp.where(pos, P["Tcp"], P["Tcn"])
+    coef = jnp.where(pos, P["Tssp1"], P["Tssn1"])
+    _, implicit = _stribeck_fall(P["A"], P["Tss2"], coef)
+
+    def viscous(v):
+        return _branch_friction(v, sign, P) - sign * (Tc + coef * jnp.where(implicit, jnp.exp(-((v / P["Tss2"]) ** 2)), P["g_lag"]))
+
+    g = jnp.where(implicit, _mean_gauss(a / P["Tss2"], b / P["Tss2"]), P["g_lag"])
+    return 0.5 * (viscous(a) + viscous(b)) + sign * (Tc + coef * g)
+
+
+def _stage_friction(w, sign, P):
+    """Friction (N·m) in the stage equation on the branch `sign` at end velocity w: eq. 9 at w
+    (`_branch_friction`), except in a step where ω_m changes sign.
+
+    There the stages' node values of friction, which jumps at zero velocity and has its Stribeck
+    dip of width Tss2 there, miss the jump's time and the dip: a first-order error in the motor's
+    momentum at every reversal (free motion keeps it). In such a step the stage's node value is
+    replaced by one that makes the step's quadrature take the friction's integral: ω_m is taken
+    linear on each side of the crossing, whose time t_c = −ω_m0/a_0 comes from the step start's
+    velocity and acceleration (a second-order estimate; the end velocity alone would give the new
+    side's deceleration, not the old side's), and M is the stage's mean friction
+    (`_side_mean_friction` on each side). The trapezoidal stage on [0, γh] uses 2M_a − F_0, so its
+    quadrature is M_a·γh; the BDF2 stage, whose update weighs the first stage's increment by C1,
+    uses (2 − γ)M_b − (1 − γ)(F_0 + F_γ)/2 (F_γ: the first stage's value), so that the step's
+    friction impulse is the integral's. The replacement increases with w (a positive multiple of
+    eq. 9's mean over [0, w]), so the stage equation stays monotone. Off from rest (a breakaway
+    is not a crossing), under the creep ramp (friction continuous there) and where the stick test
+    holds the motor."""
+    plain = _branch_friction(w, sign, P)
+    ws, w0 = P["ws"], P["w0"]
+    first = P["xk"] == 0
+    here = (ws != 0) & ((ws > 0) != (sign > 0))  # this stage reverses the motor
+    th = P["theta"]  # the stage's fraction before the reversal
+    zero = jnp.zeros_like(w)
+    mean_cross = th * _side_mean_friction(ws, zero, -sign, P) + (1.0 - th) * _side_mean_friction(zero, w, sign, P)
+    mean_side = _side_mean_friction(ws, w, sign, P)
+    mean = jnp.where(here, mean_cross, mean_side)
+    stage1 = 2.0 * mean - P["F0"]
+    stage2 = (2.0 - _GAMMA) * mean - (1.0 - _GAMMA) * 0.5 * (P["F0"] + P["Fa"])
+    return jnp.where(_stage_friction_on(P), jnp.where(first, stage1, stage2), plain)
+
+
+def _stage_friction_on(P):
+    """Whether the stage takes the mean-based friction of `_stage_friction`: a step predicted to run
+    through the Stribeck dip or to reverse (`near`), not from rest, not under the creep ramp; the
+    same on both branches, so that the stick interval is never empty."""
+    return (P["xon"] > 0) & (P["vc"] <= 0) & (P["w0"] != 0) & (P["near"] > 0)
+
+
 def _G_nofriction(s, P):
     *_, Tbar, _, wm1 = _end_state(s, P)
     return P["A"] * (wm1 - P["wm_hist"]) + Tbar / P["N"] - P["drive"]
@@ -187,7 +257,7 @@ def _H(s, P):
 
 def _G_branch(s, P):
     *_, wm1 = _end_state(s, P)
-    return _G_nofriction(s, P) + _branch_friction(wm1, P["sign"], P)
+    return _G_nofriction(s, P) + _stage_friction(wm1, P["sign"], P)
 
 
 def _newton(fn, lo, hi, x0, P, iterations):
@@ -248,20 +318,25 @@ def _solve_step(P, s_guess, iterations):
     h0 = sg(_H(jnp.zeros_like(s_guess), P))
     b = sg(_signed_pow(-h0, P["alpha"]))
     s_star = _root(_H, jnp.minimum(0.0, b), jnp.maximum(0.0, b), sg(b), P, iterations)
-    # stick test: the friction that would hold the motor must lie inside the breakaway interval
+    # stick test: the friction that would hold the motor must lie inside the breakaway interval, as the
+    # stage takes friction (`_stage_friction`: eq. 9's at the stage end, or the mean-based value of a
+    # step through the Stribeck dip or a reversal, whose interval is never empty)
     g_star = _G_nofriction(s_star, P)
-    f_pos = _branch_friction(jnp.zeros_like(s_star), 1.0, P)  # breakaway, positive direction
-    f_neg = _branch_friction(jnp.zeros_like(s_star), -1.0, P)  # (negative number)
+    zero = jnp.zeros_like(s_star)
+    f_pos = _stage_friction(zero, 1.0, P)  # breakaway, positive direction
+    f_neg = _stage_friction(zero, -1.0, P)  # (negative number)
     go_pos = sg(g_star + f_pos < 0)
     go_neg = sg(g_star + f_neg > 0)
     sign = jnp.where(go_pos, 1.0, jnp.where(go_neg, -1.0, 0.0))
+    corrected = _stage_friction_on(P)
+    Pb = dict(P, sign=sign)
     # branch root: G(s) ≥ A(ω_m(s) − ω_m0) + [G − A(ω_m − ω_m0)](s*) on the branch side, and
     # ω_m(s) ≥ N(r_true(s) − ė + ω_o(s*)): a bracket from the inertia term alone
-    Pb = dict(P, sign=sign)
     f_branch0 = jnp.where(sign > 0, f_pos, f_neg)
     # with an implicit falling Stribeck term, friction drops at most L per rad/s: A − L > 0 bounds
     fall, implicit = _stribeck_fall(P["A"], P["Tss2"], jnp.where(sign > 0, P["Tssp1"], P["Tssn1"]))
-    L = jnp.where(implicit, fall, 0.0)
+    # (the mean-based value multiplies eq. 9's slope, or its mean's, by at most 2)
+    L = jnp.where(implicit, fall, 0.0) * jnp.where(corrected, 2.0, 1.0)
     w_b = sg(-(g_star + f_branch0) / (P["A"] - L))
     *_, wo_star, _ = _end_state(s_star, P)
     s_b = sg(_signed_pow(w_b / P["N"] + P["edot1"] - sg(wo_star), P["alpha"]))
@@ -275,11 +350,18 @@ def _solve_step(P, s_guess, iterations):
     out = _end_state(s, P)
     # residual of the solved equation (stuck: A·ω_m; sliding: G), relative to the largest torque in it
     *_, Tbar, _, wm1 = out
-    g_slip = P["A"] * (wm1 - P["wm_hist"]) + Tbar / P["N"] - P["drive"] + _branch_friction(wm1, sign, Pb)
+    f_used = _stage_friction(wm1, sign, Pb)
+    g_slip = P["A"] * (wm1 - P["wm_hist"]) + Tbar / P["N"] - P["drive"] + f_used
     resid = jnp.where(stuck, P["A"] * wm1, g_slip)
     scale = P["A"] * jnp.abs(P["wm_hist"]) + jnp.abs(P["drive"]) + jnp.abs(Tbar) / P["N"] + P["Tcp"] + P["Tcn"] + 1e-12
     converged = jnp.abs(resid) <= ROOT_RTOL * scale
-    return s, out, stuck, converged
+    # eq. 9's own friction at the stage end (the next step's F_0) differs from the one the stage used in
+    # a step through the dip or a reversal; a stuck motor's is the torque that holds it at rest, inside
+    # the breakaway interval (not the stage's mean, which includes the impulse that stopped it)
+    net = P["drive"] - Tbar / P["N"]
+    hold = jnp.clip(net, _branch_friction(zero, -1.0, P), _branch_friction(zero, 1.0, P))
+    corr = jnp.where(stuck, net - P["A"] * (wm1 - P["wm_hist"]) - hold, f_used - _branch_friction(wm1, sign, Pb))
+    return s, out, stuck, converged, corr
 
 
 def _tangent_dependence(*trees):
@@ -372,9 +454,11 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
         def electric(t):
             return Km * current.evaluate(t - delay)
 
-        def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0):
+        def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0, crossing=None):
             """The stage equation's data: `hist` = (A, ω_m, q, ω_o history, bh, fh/J); the explicit
-            terms (position- and load-dependent) evaluated at the predicted stage end (θ_m1, ω_m1, T1)."""
+            terms (position- and load-dependent) evaluated at the predicted stage end (θ_m1, ω_m1, T1);
+            `crossing` = (ω_m at the step start, ω_m at the stage start, stage k, the stage's fraction
+            before a reversal, F_0, the first stage's F) for `_stage_friction` (None: off)."""
             A, wm_hist, q_hist, wo_hist, bh, fh_J = hist
             pdf = 1.0 + eff.periodic("position_dependent_friction", thm1)
             load = (jnp.abs(eff.load_dependent_friction.mu) * jnp.sqrt(T1 * T1 + 1e-6) / N
@@ -391,13 +475,17 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                 edot1=eff.periodic_rate("kinematic_error", thm1, wm1) if ke else 0.0,
                 drive=electric(t1) + eff.periodic("cogging", thm1),
             )
+            w0, ws, xk, theta, F0, Fa, near = (0.0,) * 7 if crossing is None else crossing
+            P.update(w0=w0, ws=ws, xk=xk, theta=theta, F0=F0, Fa=Fa, near=near, xon=0.0 if crossing is None else 1.0)
             P = {k: jnp.asarray(v, dtype=float) for k, v in P.items()}
             P["eff"] = eff
             return P
 
-        def stage(t1, hist, tho_hist, thm_pred, start, s_guess):
-            """Solve one stage ending at t1; `start` = (θ_m, ω_m, T, torsion, z) at the step start, from
-            which the explicit terms are predicted (θ_m at the stage end: `thm_pred`).
+        def stage(t1, hist, tho_hist, thm_pred, start, s_guess, crossing):
+            """Solve one stage ending at t1; `start` = (θ_m, ω_m, T, torsion, z) at the stage start, from
+            which the explicit terms are predicted (θ_m at the stage end: `thm_pred`); `crossing` =
+            (ω_m at the step start, stage k, the stage's fraction before a reversal, F_0, the first
+            stage's F) for `_stage_friction`.
 
             The corrector's second pass is the same `_solve_step` as the first, with the explicit terms
             at the first pass's stage end: both passes are one traced pass in a two-iteration
@@ -406,18 +494,18 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
 
             def one_pass(carry):
                 """Solve the stage with the explicit terms at `carry`'s (θ_m, ω_m, T); the next pass's."""
-                s, _, _, conv, thm_e, wm_e, T_e, _ = carry
-                P = stage_parameters(t1, hist, thm_e, wm_e, T_e, tor0, z0)
-                s, out, stuck, conv_k = _solve_step(P, s, solver.iterations)
+                s, _, _, conv, thm_e, wm_e, T_e, _, _ = carry
+                P = stage_parameters(t1, hist, thm_e, wm_e, T_e, tor0, z0, (crossing[0], wm0, *crossing[1:]))
+                s, out, stuck, conv_k, corr = _solve_step(P, s, solver.iterations)
                 r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
                 thm1 = theta_m(q1, tho_hist + hist[4] * wo1, t1)
-                return s, out, stuck, conv & conv_k, thm1, wm1, 0.5 * (T0 + T1), P["drive"]
+                return s, out, stuck, conv & conv_k, thm1, wm1, 0.5 * (T0 + T1), P["drive"], corr
 
             # placeholders for the first pass's outputs, with the tangents and batch axes of the state
             # (so that the scan is traced once, see `_tangent_dependence`)
             zero = 0.0 * (s_guess + T0 + wm0 + thm_pred)
             init = (s_guess, (zero,) * 8, jnp.zeros(jnp.shape(zero), dtype=bool), jnp.ones(jnp.shape(zero), dtype=bool),
-                    thm_pred, wm0, T0, zero)
+                    thm_pred, wm0, T0, zero, zero)
             if not solver.corrector:
                 carry = one_pass(init)
             else:
@@ -432,12 +520,14 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                     return jax.lax.cond((k == 0) | needed, one_pass, lambda c: c, c), None
 
                 carry, _ = jax.lax.scan(body, init, jnp.arange(2))
-            s, out, stuck, conv, *_, drive_t1 = carry
+            s, out, stuck, conv, *_, drive_t1, corr = carry
             r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
             wm1 = jnp.where(stuck, 0.0, wm1)
             tho1 = tho_hist + hist[4] * wo1
             A, wm_hist = hist[0], hist[1]
-            F1 = drive_t1 - T1 / N - A * (wm1 - wm_hist)  # friction, sliding or holding
+            # friction, sliding or holding: the one the stage used after the first stage (the second's
+            # data), eq. 9's own at the step's end (the next step's F_0; `_stage_friction`)
+            F1 = drive_t1 - T1 / N - A * (wm1 - wm_hist) - jnp.where(crossing[1] == 0, 0.0, corr)
             return (q1, wm1, tho1, wo1, z1, s, T1, F1), tor1, conv
 
         def step(state, t0):
@@ -450,10 +540,17 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             thm0 = theta_m(q0, tho0, t0)
             tor0 = torsion_of(q0, thm0)
             drive0 = electric(t0) + eff.periodic("cogging", thm0)
+            # when ω_m would reach zero at the step start's acceleration (`_stage_friction`)
+            a0 = (drive0 - T0 / N - F0) / p.Jeff
+            towards = wm0 * a0 < 0
+            tc = jnp.where(towards, -wm0 / jnp.where(towards, a0, 1.0), 2.0 * h)
+            # the step runs through the Stribeck dip (|ω_m| within 4 Tss2) or reverses, by that prediction
+            w_pred = wm0 + a0 * h
+            near = (jnp.minimum(jnp.abs(wm0), jnp.abs(w_pred)) < 4.0 * p.Tss2) | (wm0 * w_pred < 0)
 
             def one_stage(prev, k):
                 """Stage k from the end of the one before (k = 0: the step start; k = 1: t0 + γh)."""
-                (qp, wmp, thop, wop, zp, sp, Tp, _), torp = prev
+                (qp, wmp, thop, wop, zp, sp, Tp, Fp), torp = prev
                 first = k == 0
                 tp = t0 + jnp.where(first, 0.0, _GAMMA * h)
                 t1 = t0 + jnp.where(first, _GAMMA * h, h)
@@ -472,7 +569,8 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                 tho_hist = jnp.where(first, tho0 + bh * wo0, _C1 * thop - _C0 * tho0)
                 thmp = theta_m(qp, thop, tp)
                 thm_pred = predicted_angle(t1, t1 - tp, qp, thop, wop, thmp, wmp)
-                out, tor1, conv = stage(t1, hist, tho_hist, thm_pred, (thmp, wmp, Tp, torp, zp), sp)
+                out, tor1, conv = stage(t1, hist, tho_hist, thm_pred, (thmp, wmp, Tp, torp, zp), sp,
+                                        (wm0, k, jnp.clip((tc - (tp - t0)) / (t1 - tp), 0.0, 1.0), F0, Fp, near))
                 return (out, tor1), conv
 
             (out, _), conv = jax.lax.scan(one_stage, (state, tor0), jnp.arange(2))
