@@ -1,5 +1,5 @@
 """Benchmark (not a test): the fixed-step implicit velocity-level stepper (`hdjax.VelocityImplicit`)
-against itself at a tight step and against the adaptive Rodas3 default, on the shipped HD2 campaign
+against itself at a tight step (128 substeps) and against the adaptive Rodas3 default, on the shipped HD2 campaign
 and on a dataset from the independent bench (`hdjax._testbench.independent`).
 
 Prints, per dataset and per number of substeps m (steps per 1 ms sample):
@@ -20,7 +20,12 @@ the HD2 station (`hdjax.rig.hide_effect`, e.g. a 2 ms input delay, +20 % torque 
 the accuracy goal holds "for every SPEC §4 effect that the plant carries" (issue 19).
 (`presliding_friction` is not carried: the stepper's exact sticking is its rigid limit.)
 
-Usage: `python benchmarks/stepper.py [--records 12] [--substeps 1,2,4,8] [--no-corrector] [--effects]`
+With `--reversal-quadrature`, each table also has the rows ('rq') of
+`VelocityImplicit(reversal_quadrature=True)`: friction's mean over each stage through the Stribeck
+dip and motor reversals instead of its stage-end value. The reference is 128 substeps with it.
+
+Usage: `python benchmarks/stepper.py [--records 12] [--substeps 1,2,4,8] [--no-corrector] [--effects]
+[--reversal-quadrature]`
 """
 
 import argparse
@@ -41,6 +46,9 @@ from hdjax import load_dataset  # noqa: E402
 from hdjax.bench import make_dataset  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+#: The tight reference: 128 substeps with the reversal quadrature (second order through motor
+#: reversals; without it 128 substeps are still first order there, about 0.01 σ on HD1).
+REFERENCE = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=128, reversal_quadrature=True))
 FREE = ("K1", "Tst", "Jeff", "Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")
 
 
@@ -67,7 +75,7 @@ def _records(ds, n_records):
     return batch, np.asarray(batch.mask), p, sT, sw, len(locked), len(free)
 
 
-def run(name, ds, n_records, substeps, corrector=True):
+def run(name, ds, n_records, substeps, corrector=True, quadratures=(False,)):
     batch, mask, p, sT, sw, n_locked, n_free = _records(ds, n_records)
     sim = eqx.filter_jit(hdjax.simulate_batch)
 
@@ -80,7 +88,7 @@ def run(name, ds, n_records, substeps, corrector=True):
         return eqx.filter_jit(jax.jacfwd(out))
 
     v0 = jnp.array([float(getattr(p, k)) for k in FREE])
-    ref = sim(p, ds.drive, batch, simulator=hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=128)))
+    ref = sim(p, ds.drive, batch, simulator=REFERENCE)
     rodas = hdjax.Simulator(rtol=1e-6, atol=1e-8)
     t_rodas, tr_rodas = _timed(lambda: sim(p, ds.drive, batch, simulator=rodas), repeat=1)
     tj_rodas, _ = _timed(jac(rodas), v0, repeat=1)
@@ -91,15 +99,16 @@ def run(name, ds, n_records, substeps, corrector=True):
 
     print(f"\n{name}: {n_locked} locked + {n_free} free records, {int(mask.sum())} samples")
     print(f"{'solver':>22} {'RMS T/σ':>8} {'RMS ω/σ':>8} {'max T/σ':>8} {'max ω/σ':>8} {'sim s':>7} {'jac s':>7} {'RMS T/σ vs Rodas3':>18}")
-    for m in substeps:
-        s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=m, corrector=corrector))
+    for m, rq in ((m, rq) for rq in quadratures for m in substeps):
+        s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=m, corrector=corrector, reversal_quadrature=rq))
         t_sim, tr = _timed(lambda: sim(p, ds.drive, batch, simulator=s))
         t_jac, _ = _timed(jac(s), v0)
         rT, mT = rms(tr.torque, ref.torque, sT)
         rw, mw = rms(tr.motor_velocity, ref.motor_velocity, sw)
         rR, _ = rms(tr.torque, tr_rodas.torque, sT)
         ok = "" if bool(jnp.all(tr.success)) else " (some root not converged)"
-        print(f"{'VelocityImplicit m=' + str(m) + ('' if corrector else ' np'):>22} {rT.max():8.3f} {rw.max():8.3f} {mT.max():8.2f} {mw.max():8.2f} "
+        label = "VelocityImplicit m=" + str(m) + ("" if corrector else " np") + (" rq" if rq else "")
+        print(f"{label:>22} {rT.max():8.3f} {rw.max():8.3f} {mT.max():8.2f} {mw.max():8.2f} "
               f"{t_sim:7.3f} {t_jac:7.2f} {rR.max():18.3f}{ok}")
     rT, mT = rms(tr_rodas.torque, ref.torque, sT)
     rw, mw = rms(tr_rodas.motor_velocity, ref.motor_velocity, sw)
@@ -107,7 +116,7 @@ def run(name, ds, n_records, substeps, corrector=True):
           f"{t_rodas:7.3f} {tj_rodas:7.2f}   (smoothed model; its difference to the exact one)")
 
 
-def run_effects(ds, n_records, substeps, corrector=True):
+def run_effects(ds, n_records, substeps, corrector=True, rq=False):
     """Accuracy against m = 128 with each effect on (shipped HD2 records, truth parameters)."""
     from hdjax.rig import hide_effect, station_hd2
 
@@ -119,7 +128,7 @@ def run_effects(ds, n_records, substeps, corrector=True):
         e = (np.asarray(a) - np.asarray(b)) * mask / s
         return np.sqrt((e**2).sum(1) / mask.sum(1)).max(), np.abs(e).max()
 
-    print(f"\nshipped data/hd2 with one SPEC §4 effect at the rig's reference magnitude: {n_locked} locked + "
+    print(f"\nshipped data/hd2 with one SPEC §4 effect at the rig's reference magnitude{' (rq)' if rq else ''}: {n_locked} locked + "
           f"{n_free} free records; worst record's RMS error (and the largest sample error) in σ against m = 128")
     print(f"{'effect':>28} " + " ".join(f"{'m=' + str(m) + ' T/σ':>16} {'ω/σ':>16}" for m in substeps))
     worst = {m: 0.0 for m in substeps}
@@ -127,10 +136,10 @@ def run_effects(ds, n_records, substeps, corrector=True):
         if name == "presliding_friction":
             continue
         eff = hide_effect(name, None, station=station)
-        ref = sim(p, ds.drive, batch, effects=eff, simulator=hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=128)))
+        ref = sim(p, ds.drive, batch, effects=eff, simulator=REFERENCE)
         cells = []
         for m in substeps:
-            s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=m, corrector=corrector))
+            s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=m, corrector=corrector, reversal_quadrature=rq))
             tr = sim(p, ds.drive, batch, effects=eff, simulator=s)
             (rT, mT), (rw, mw) = err(tr.torque, ref.torque, sT), err(tr.motor_velocity, ref.motor_velocity, sw)
             worst[m] = max(worst[m], rT, rw)
@@ -148,19 +157,23 @@ def main() -> int:
     ap.add_argument("--no-corrector", action="store_true",
                     help="the rows without the predictor-corrector pass (`VelocityImplicit(corrector=False)`, 'np'); "
                          "the reference keeps it")
+    ap.add_argument("--reversal-quadrature", action="store_true",
+                    help="also the rows with `VelocityImplicit(reversal_quadrature=True)` ('rq'), and the effects table with it")
     ap.add_argument("--effects", action="store_true",
                     help="also the accuracy with each SPEC §4 effect on (shipped HD2 records, rig reference magnitudes)")
     args = ap.parse_args()
     substeps = [int(x) for x in args.substeps.split(",")]
     corrector = not args.no_corrector
+    rqs = (False, True) if args.reversal_quadrature else (False,)
     hd2 = load_dataset(ROOT / "data" / "hd2")
-    run("shipped data/hd2 (truth parameters)", hd2, args.records, substeps, corrector)
-    run("shipped data/hd1 (truth parameters)", load_dataset(ROOT / "data" / "hd1"), args.records, substeps, corrector)
+    run("shipped data/hd2 (truth parameters)", hd2, args.records, substeps, corrector, rqs)
+    run("shipped data/hd1 (truth parameters)", load_dataset(ROOT / "data" / "hd1"), args.records, substeps, corrector, rqs)
     if args.effects:
-        run_effects(hd2, args.records, substeps, corrector)
+        for rq in rqs:
+            run_effects(hd2, args.records, substeps, corrector, rq)
     with tempfile.TemporaryDirectory() as tmp:
         make_dataset(tmp, drive="hd2", seed=9001, n_locked=args.records // 2, n_free=args.records - args.records // 2)
-        run("independent bench, HD2-like, seed 9001 (its true parameters)", load_dataset(tmp), args.records, substeps, corrector)
+        run("independent bench, HD2-like, seed 9001 (its true parameters)", load_dataset(tmp), args.records, substeps, corrector, rqs)
     print(f"\nmachine: {jax.devices()[0].platform}, {jax.local_device_count()} device(s)")
     return 0
 

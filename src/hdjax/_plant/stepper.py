@@ -44,6 +44,14 @@ of the stage, so breakaway from rest is $T_s + T_{ss1}$; corrector: the first pa
 convex–concave splitting that keeps $G$ monotone and the root unique at any $h$. With
 $T_{ss1} \le 0$ (friction rising with speed, as in the paper's HD2) the term is always implicit.
 
+**Friction through zero velocity** (`VelocityImplicit(reversal_quadrature=True)`). A step predicted to come close to zero velocity or to reverse
+the motor takes friction's mean over each stage, with the velocity linear on each side of the
+estimated crossing, instead of its node values (`_stage_friction`): the jump at zero velocity and
+the narrow Stribeck dip then enter the step's impulse at second order (HD1 campaign, 4 substeps:
+motor-velocity error 0.27 σ → 0.07 σ). A stuck motor's friction carried to the next step is then
+the torque holding it (inside the breakaway interval), not the stage's mean. Off by default: the
+stage's Gaussian mean in the Newton loop makes the fit about 40 % slower.
+
 **Derivatives** come from the implicit function theorem at the converged root (`custom_jvp`):
 $\partial s/\partial p = -G_p/G_s$, never from differentiating the iterations; $G_s \ge T_{st}/N > 0$,
 so they are finite everywhere, at zero velocity and while stuck included.
@@ -83,19 +91,29 @@ class VelocityImplicit(eqx.Module):
       Stribeck term (an amplitude > 0) that may be too steep to be implicit; otherwise the second
       pass would solve the same equation and is skipped (measured 2026-12-04: simulation and
       Jacobian about 1.6× cheaper on the shipped HD2 data, the same trajectories).
+    - `reversal_quadrature`: friction's mean over each stage in a step through the Stribeck dip or a
+      motor reversal (`_stage_friction`), instead of eq. 9 at the stage end. Measured 2026-12-06
+      (`benchmarks/stepper.py --reversal-quadrature`, 12 shipped records, worst record's RMS against
+      128 substeps with it): HD1 motor velocity 0.065 σ at 4 substeps instead of 0.279 σ (0.028
+      against 0.142 at 8, 0.003 against 0.098 at 16), HD2 0.019 σ instead of 0.076 σ. Costs: the
+      stage's Gaussian mean in the Newton loop, a Jacobian about 1.6× and the HD2 fit command
+      about 1.4× the time (46 s against 32.5 s, cold), so off by default. Use it with 4 substeps
+      or more: at 2 it moved a stop on a locked HD1 record (torque 0.30 σ RMS there, 0.08 σ without).
     """
 
     substeps: int = eqx.field(static=True, default=1)
     iterations: int = eqx.field(static=True, default=48)
     corrector: bool = eqx.field(static=True, default=True)
+    reversal_quadrature: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         for name in ("substeps", "iterations"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"`VelocityImplicit.{name}` must be a whole number >= 1, got {v!r}.")
-        if not isinstance(self.corrector, bool):
-            raise TypeError(f"`VelocityImplicit.corrector` must be True or False, got {self.corrector!r}.")
+        for name in ("corrector", "reversal_quadrature"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"`VelocityImplicit.{name}` must be True or False, got {getattr(self, name)!r}.")
 
 
 #: A step's root counts as converged when the residual of its equation is at most this fraction of
@@ -151,90 +169,120 @@ def _stribeck_fall(A, Tss2, coef):
     return fall, A > 1.1 * fall
 
 
-def _branch_friction(w, sign, P):
-    """Friction (N·m) on the branch `sign` (+1: ω_m ≥ 0, −1: ω_m ≤ 0) at velocity w."""
+def _friction_parts(w, sign, P):
+    """Eq. 9 on the branch `sign` (+1: ω_m ≥ 0, −1: ω_m ≤ 0) at velocity w, in parts: the viscous
+    torque, the Coulomb torque Tc, the Stribeck amplitude, the Stribeck term's factor at w (its
+    lagged value where it is explicit), whether it is implicit, and the creep ramp (1 without it)."""
     pos = sign > 0
     Tv = jnp.where(pos, P["Tvp"], P["Tvn"])
     Tc = jnp.where(pos, P["Tcp"], P["Tcn"])
     coef = jnp.where(pos, P["Tssp1"], P["Tssn1"])
-    g_implicit = jnp.exp(-((w / P["Tss2"]) ** 2))
     _, implicit = _stribeck_fall(P["A"], P["Tss2"], coef)
-    g = jnp.where(implicit, g_implicit, P["g_lag"])
+    g = jnp.where(implicit, jnp.exp(-((w / P["Tss2"]) ** 2)), P["g_lag"])
     vc = P["vc"]
     ramp = jnp.where(vc > 0, jnp.minimum(jnp.abs(w) / jnp.where(vc > 0, vc, 1.0), 1.0), 1.0)
-    # under the creep ramp a negative breakaway (T_c + T_ss1 < 0, as HD2's negative direction) would
-    # make the ramped term fall with speed and the step equation non-monotone: its magnitude is
-    # clamped at zero there (friction never drives the motor)
-    mag = Tc + coef * g
-    mag = jnp.where(vc > 0, jnp.maximum(mag, 0.0), mag)
+    return _viscous(w, Tv, P), Tc, coef, g, implicit, ramp
+
+
+def _viscous(w, Tv, P):
     viscous = P["visc"] * Tv * w
     if "viscous_friction_law" in P["eff"].active:
         # Tv·ω·((ω² + ε²)/ωr²)^((κ−1)/2) increases with ω for every κ > 0: G stays monotone
         viscous = viscous * P["eff"].viscous_friction_law.factor(w)
+    return viscous
+
+
+def _branch_friction(w, sign, P):
+    """Friction (N·m) on the branch `sign` (+1: ω_m ≥ 0, −1: ω_m ≤ 0) at velocity w."""
+    viscous, Tc, coef, g, _, ramp = _friction_parts(w, sign, P)
+    # under the creep ramp a negative breakaway (T_c + T_ss1 < 0, as HD2's negative direction) would
+    # make the ramped term fall with speed and the step equation non-monotone: its magnitude is
+    # clamped at zero there (friction never drives the motor)
+    mag = Tc + coef * g
+    mag = jnp.where(P["vc"] > 0, jnp.maximum(mag, 0.0), mag)
     return viscous + sign * ramp * mag
 
 
-def _mean_gauss(a, b):
+def _mean_gauss(a, b, erfc_a=None):
     """Mean of e^{−u²} over [a, b] (a, b ≥ 0, or both ≤ 0): the Taylor series about the midpoint where
     the interval is short (no cancellation, whatever its width relative to the values), the erfc
-    difference otherwise."""
-    lo, hi = jnp.minimum(jnp.abs(a), jnp.abs(b)), jnp.maximum(jnp.abs(a), jnp.abs(b))
-    m, d = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    difference otherwise. `erfc_a`: erfc(|a|) if at hand (the step's cost is mostly erfc)."""
+    aa, ab = jnp.abs(a), jnp.abs(b)
+    m, d = 0.5 * (aa + ab), 0.5 * jnp.abs(ab - aa)
     short = d * (1.0 + m) < 0.02
     m2, d2 = m * m, d * d
     series = jnp.exp(-m2) * (1.0 + (4.0 * m2 - 2.0) * d2 / 6.0 + (16.0 * m2 * m2 - 48.0 * m2 + 12.0) * d2 * d2 / 120.0)
     erfc = jax.scipy.special.erfc
-    wide = 0.5 * jnp.sqrt(jnp.pi) * (erfc(lo) - erfc(hi)) / jnp.where(short, 1.0, hi - lo)
+    ea = erfc(aa) if erfc_a is None else erfc_a
+    wide = 0.5 * jnp.sqrt(jnp.pi) * (ea - erfc(ab)) / jnp.where(short, 1.0, ab - aa)
     return jnp.where(short, series, wide)
 
 
-def _side_mean_friction(a, b, sign, P):
+def _side_mean_friction(a, b, sign, P, parts_b=None, erfc_a=None):
     """Mean friction (N·m) on the branch `sign` while ω_m runs linearly from a to b (both on that
     side, or 0): eq. 9's Coulomb term exactly, the viscous term by its two end values (exact for a
     linear law), the Stribeck term by the mean of e^{−(ω/Tss2)²} (`_mean_gauss`) where it is
-    implicit (its lagged value otherwise)."""
-    pos = sign > 0
-    Tc = jnp.where(pos, P["Tcp"], P["Tcn"])
-    coef = jnp.where(pos, P["Tssp1"], P["Tssn1"])
-    _, implicit = _stribeck_fall(P["A"], P["Tss2"], coef)
-
-    def viscous(v):
-        return _branch_friction(v, sign, P) - sign * (Tc + coef * jnp.where(implicit, jnp.exp(-((v / P["Tss2"]) ** 2)), P["g_lag"]))
-
-    g = jnp.where(implicit, _mean_gauss(a / P["Tss2"], b / P["Tss2"]), P["g_lag"])
-    return 0.5 * (viscous(a) + viscous(b)) + sign * (Tc + coef * g)
+    implicit (its lagged value otherwise). `parts_b`: `_friction_parts(b, sign, P)`, `erfc_a`:
+    erfc(|a|/Tss2), if at hand."""
+    viscous_b, Tc, coef, _, implicit, _ = _friction_parts(b, sign, P) if parts_b is None else parts_b
+    Tv = jnp.where(sign > 0, P["Tvp"], P["Tvn"])
+    g = jnp.where(implicit, _mean_gauss(a / P["Tss2"], b / P["Tss2"], erfc_a), P["g_lag"])
+    return 0.5 * (_viscous(a, Tv, P) + viscous_b) + sign * (Tc + coef * g)
 
 
 def _stage_friction(w, sign, P):
     """Friction (N·m) in the stage equation on the branch `sign` at end velocity w: eq. 9 at w
-    (`_branch_friction`), except in a step where ω_m changes sign.
+    (`_branch_friction`), except in a step through the Stribeck dip or a reversal of the motor.
 
-    There the stages' node values of friction, which jumps at zero velocity and has its Stribeck
-    dip of width Tss2 there, miss the jump's time and the dip: a first-order error in the motor's
-    momentum at every reversal (free motion keeps it). In such a step the stage's node value is
-    replaced by one that makes the step's quadrature take the friction's integral: ω_m is taken
-    linear on each side of the crossing, whose time t_c = −ω_m0/a_0 comes from the step start's
-    velocity and acceleration (a second-order estimate; the end velocity alone would give the new
-    side's deceleration, not the old side's), and M is the stage's mean friction
-    (`_side_mean_friction` on each side). The trapezoidal stage on [0, γh] uses 2M_a − F_0, so its
-    quadrature is M_a·γh; the BDF2 stage, whose update weighs the first stage's increment by C1,
-    uses (2 − γ)M_b − (1 − γ)(F_0 + F_γ)/2 (F_γ: the first stage's value), so that the step's
-    friction impulse is the integral's. The replacement increases with w (a positive multiple of
-    eq. 9's mean over [0, w]), so the stage equation stays monotone. Off from rest (a breakaway
-    is not a crossing), under the creep ramp (friction continuous there) and where the stick test
-    holds the motor."""
-    plain = _branch_friction(w, sign, P)
-    ws, w0 = P["ws"], P["w0"]
-    first = P["xk"] == 0
+    Friction jumps at zero velocity (by the two breakaway torques) and has its Stribeck dip of width
+    Tss2 there. Taken at the stages' nodes it misses the jump's time and the dip whenever ω_m passes
+    through zero within a step (the dip lasts Tss2/|a|, about 0.1 ms on the HD1 campaign): a
+    first-order error in the motor's momentum at every reversal, which free motion keeps (measured
+    2026-12-06 on the shipped HD1 records: 0.27 σ in motor velocity at 4 substeps, 0.10 σ at 16).
+
+    In a step that the start's velocity ω_m0 and acceleration a_0 predict to come within 4·Tss2 of
+    zero or to reverse (`near`), each stage takes the friction's mean M over the stage, with ω_m
+    linear in time on each side of zero (`_side_mean_friction`): across a reversal, the old side up
+    to t_c = −ω_m0/a_0 (a second-order estimate of the crossing: the end velocity alone would give
+    the new side's deceleration, not the old side's), the new side after it. The trapezoidal stage
+    on [0, γh] uses 2M_a − F_0, so its quadrature of friction is M_a·γh; the BDF2 stage, whose
+    update weighs the first stage's increment by C1, uses (2 − γ)M_b − (1 − γ)(F_0 + F_γ)/2 (F_γ:
+    the value the first stage used), so that the step's friction impulse is the integral's. For a
+    law linear in ω, with ω linear in time, both forms give eq. 9's node values: switching between
+    them changes a step at second order only. The value
+    increases with w (a positive multiple of a mean of eq. 9 over an interval ending at w), so the
+    stage equation stays monotone; its stick interval (`_solve_step`) is never empty. Off from rest
+    (when a stuck motor breaks away inside the step is not known; a mean from the step start moved
+    breakaway by half a stage) and under the creep ramp (friction continuous there)."""
+    parts = _friction_parts(w, sign, P)
+    viscous, Tc, coef, g, _, ramp = parts
+    mag = jnp.where(P["vc"] > 0, jnp.maximum(Tc + coef * g, 0.0), Tc + coef * g)
+    plain = viscous + sign * ramp * mag  # `_branch_friction`
+    ws = P["ws"]
     here = (ws != 0) & ((ws > 0) != (sign > 0))  # this stage reverses the motor
-    th = P["theta"]  # the stage's fraction before the reversal
-    zero = jnp.zeros_like(w)
-    mean_cross = th * _side_mean_friction(ws, zero, -sign, P) + (1.0 - th) * _side_mean_friction(zero, w, sign, P)
-    mean_side = _side_mean_friction(ws, w, sign, P)
-    mean = jnp.where(here, mean_cross, mean_side)
+    # the new side's mean: over [0, w] after a reversal, over [ω_s, w] otherwise (one Gaussian mean)
+    mean_new = _side_mean_friction(jnp.where(here, 0.0, ws), w, sign, P, parts, jnp.where(here, 1.0, P["erfc_ws"]))
+    th = P["theta"]  # the stage's fraction before the reversal; P["m_old"]: the old side's mean
+    mean = jnp.where(here, th * P["m_old"] + (1.0 - th) * mean_new, mean_new)
+    return _stage_value(mean, plain, P)
+
+
+def _stage_value(mean, plain, P):
+    """The stage's friction from its mean (`_stage_friction`), or eq. 9's value `plain` where off."""
     stage1 = 2.0 * mean - P["F0"]
     stage2 = (2.0 - _GAMMA) * mean - (1.0 - _GAMMA) * 0.5 * (P["F0"] + P["Fa"])
-    return jnp.where(_stage_friction_on(P), jnp.where(first, stage1, stage2), plain)
+    return jnp.where(_stage_friction_on(P), jnp.where(P["xk"] == 0, stage1, stage2), plain)
+
+
+def _stage_friction_at_rest(sign, P):
+    """`_stage_friction` at w = 0 on the branch `sign` (the stick test's bounds), without the
+    Gaussian means: the mean there is the old side's (precomputed) or eq. 9's breakaway torque."""
+    plain = _branch_friction(jnp.zeros_like(P["ws"]), sign, P)
+    ws = P["ws"]
+    here = (ws != 0) & ((ws > 0) != (sign > 0))
+    th = P["theta"]
+    mean = jnp.where(here, th * P["m_old"] + (1.0 - th) * plain, jnp.where(ws == 0, plain, P["m_old"]))
+    return _stage_value(mean, plain, P)
 
 
 def _stage_friction_on(P):
@@ -256,6 +304,11 @@ def _H(s, P):
 
 
 def _G_branch(s, P):
+    *_, wm1 = _end_state(s, P)
+    return _G_nofriction(s, P) + _branch_friction(wm1, P["sign"], P)
+
+
+def _G_branch_mean(s, P):
     *_, wm1 = _end_state(s, P)
     return _G_nofriction(s, P) + _stage_friction(wm1, P["sign"], P)
 
@@ -310,8 +363,10 @@ def _root_jvp(fn, iterations, primals, tangents):
     return x, jnp.where(safe, -g_p / jnp.where(safe, g_s, 1.0), 0.0)
 
 
-def _solve_step(P, s_guess, iterations):
-    """One implicit stage: returns (s, end-state tuple of `_end_state`, stuck flag, converged flag)."""
+def _solve_step(P, s_guess, iterations, reversal_quadrature):
+    """One implicit stage: returns (s, end-state tuple of `_end_state`, stuck flag, converged flag,
+    the friction the stage used less eq. 9's at its end). `reversal_quadrature` (static):
+    friction by `_stage_friction`, else eq. 9 at the stage end."""
     sg = jax.lax.stop_gradient
     # s*: the motor stands still at the end of the step. H(s) ≥ r_true(s) + H(0) − r_true(0) on
     # s ≥ 0 (and ≤ on s ≤ 0), since the torque term of ω_o is increasing: bracket [0, b] or [b, 0]
@@ -323,12 +378,13 @@ def _solve_step(P, s_guess, iterations):
     # step through the Stribeck dip or a reversal, whose interval is never empty)
     g_star = _G_nofriction(s_star, P)
     zero = jnp.zeros_like(s_star)
-    f_pos = _stage_friction(zero, 1.0, P)  # breakaway, positive direction
-    f_neg = _stage_friction(zero, -1.0, P)  # (negative number)
+    rest = _stage_friction_at_rest if reversal_quadrature else (lambda sign, P: _branch_friction(zero, sign, P))
+    f_pos = rest(1.0, P)  # breakaway, positive direction
+    f_neg = rest(-1.0, P)  # (negative number)
     go_pos = sg(g_star + f_pos < 0)
     go_neg = sg(g_star + f_neg > 0)
     sign = jnp.where(go_pos, 1.0, jnp.where(go_neg, -1.0, 0.0))
-    corrected = _stage_friction_on(P)
+    corrected = _stage_friction_on(P) if reversal_quadrature else jnp.zeros((), dtype=bool)
     Pb = dict(P, sign=sign)
     # branch root: G(s) ≥ A(ω_m(s) − ω_m0) + [G − A(ω_m − ω_m0)](s*) on the branch side, and
     # ω_m(s) ≥ N(r_true(s) − ė + ω_o(s*)): a bracket from the inertia term alone
@@ -344,13 +400,13 @@ def _solve_step(P, s_guess, iterations):
     lo = jnp.where(sign > 0, s_star_c, jnp.where(sign < 0, s_b, s_star_c))
     hi = jnp.where(sign > 0, s_b, s_star_c)
     lo, hi = jnp.minimum(lo, hi), jnp.maximum(lo, hi)
-    s_slip = _root(_G_branch, lo, hi, sg(s_guess), Pb, iterations)
+    s_slip = _root(_G_branch_mean if reversal_quadrature else _G_branch, lo, hi, sg(s_guess), Pb, iterations)
     stuck = sign == 0
     s = jnp.where(stuck, s_star, s_slip)
     out = _end_state(s, P)
     # residual of the solved equation (stuck: A·ω_m; sliding: G), relative to the largest torque in it
     *_, Tbar, _, wm1 = out
-    f_used = _stage_friction(wm1, sign, Pb)
+    f_used = _stage_friction(wm1, sign, Pb) if reversal_quadrature else _branch_friction(wm1, sign, Pb)
     g_slip = P["A"] * (wm1 - P["wm_hist"]) + Tbar / P["N"] - P["drive"] + f_used
     resid = jnp.where(stuck, P["A"] * wm1, g_slip)
     scale = P["A"] * jnp.abs(P["wm_hist"]) + jnp.abs(P["drive"]) + jnp.abs(Tbar) / P["N"] + P["Tcp"] + P["Tcn"] + 1e-12
@@ -361,6 +417,8 @@ def _solve_step(P, s_guess, iterations):
     net = P["drive"] - Tbar / P["N"]
     hold = jnp.clip(net, _branch_friction(zero, -1.0, P), _branch_friction(zero, 1.0, P))
     corr = jnp.where(stuck, net - P["A"] * (wm1 - P["wm_hist"]) - hold, f_used - _branch_friction(wm1, sign, Pb))
+    if not reversal_quadrature:
+        corr = jnp.zeros_like(corr)
     return s, out, stuck, converged, corr
 
 
@@ -475,10 +533,18 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                 edot1=eff.periodic_rate("kinematic_error", thm1, wm1) if ke else 0.0,
                 drive=electric(t1) + eff.periodic("cogging", thm1),
             )
-            w0, ws, xk, theta, F0, Fa, near = (0.0,) * 7 if crossing is None else crossing
-            P.update(w0=w0, ws=ws, xk=xk, theta=theta, F0=F0, Fa=Fa, near=near, xon=0.0 if crossing is None else 1.0)
+            if crossing is not None:
+                w0, ws, xk, theta, F0, Fa, near = crossing
+                P.update(w0=w0, ws=ws, xk=xk, theta=theta, F0=F0, Fa=Fa, near=near, xon=1.0)
             P = {k: jnp.asarray(v, dtype=float) for k, v in P.items()}
             P["eff"] = eff
+            # friction's mean over the stage's part before a reversal, from ω_m at its start to 0 on
+            # that side (`_stage_friction`); the same for both branches, so taken once per stage
+            if crossing is None:
+                return P
+            side = jnp.where(P["ws"] > 0, 1.0, -1.0)
+            P["m_old"] = _side_mean_friction(P["ws"], jnp.zeros_like(P["ws"]), side, P)
+            P["erfc_ws"] = jax.scipy.special.erfc(jnp.abs(P["ws"]) / P["Tss2"])
             return P
 
         def stage(t1, hist, tho_hist, thm_pred, start, s_guess, crossing):
@@ -495,8 +561,9 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             def one_pass(carry):
                 """Solve the stage with the explicit terms at `carry`'s (θ_m, ω_m, T); the next pass's."""
                 s, _, _, conv, thm_e, wm_e, T_e, _, _ = carry
-                P = stage_parameters(t1, hist, thm_e, wm_e, T_e, tor0, z0, (crossing[0], wm0, *crossing[1:]))
-                s, out, stuck, conv_k, corr = _solve_step(P, s, solver.iterations)
+                P = stage_parameters(t1, hist, thm_e, wm_e, T_e, tor0, z0,
+                                     None if crossing is None else (crossing[0], wm0, *crossing[1:]))
+                s, out, stuck, conv_k, corr = _solve_step(P, s, solver.iterations, solver.reversal_quadrature)
                 r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
                 thm1 = theta_m(q1, tho_hist + hist[4] * wo1, t1)
                 return s, out, stuck, conv & conv_k, thm1, wm1, 0.5 * (T0 + T1), P["drive"], corr
@@ -527,7 +594,9 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             A, wm_hist = hist[0], hist[1]
             # friction, sliding or holding: the one the stage used after the first stage (the second's
             # data), eq. 9's own at the step's end (the next step's F_0; `_stage_friction`)
-            F1 = drive_t1 - T1 / N - A * (wm1 - wm_hist) - jnp.where(crossing[1] == 0, 0.0, corr)
+            F1 = drive_t1 - T1 / N - A * (wm1 - wm_hist)
+            if crossing is not None:
+                F1 = F1 - jnp.where(crossing[1] == 0, 0.0, corr)
             return (q1, wm1, tho1, wo1, z1, s, T1, F1), tor1, conv
 
         def step(state, t0):
@@ -540,13 +609,20 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             thm0 = theta_m(q0, tho0, t0)
             tor0 = torsion_of(q0, thm0)
             drive0 = electric(t0) + eff.periodic("cogging", thm0)
-            # when ω_m would reach zero at the step start's acceleration (`_stage_friction`)
-            a0 = (drive0 - T0 / N - F0) / p.Jeff
-            towards = wm0 * a0 < 0
-            tc = jnp.where(towards, -wm0 / jnp.where(towards, a0, 1.0), 2.0 * h)
-            # the step runs through the Stribeck dip (|ω_m| within 4 Tss2) or reverses, by that prediction
-            w_pred = wm0 + a0 * h
-            near = (jnp.minimum(jnp.abs(wm0), jnp.abs(w_pred)) < 4.0 * p.Tss2) | (wm0 * w_pred < 0)
+
+            def crossing(k, tp, t1, Fp):
+                """The data of `_stage_friction` for stage k on [tp, t1] (None without
+                `reversal_quadrature`): when ω_m would reach zero at the step start's acceleration, and
+                whether the step runs through the Stribeck dip (|ω_m| within 4 Tss2) or reverses by
+                that prediction."""
+                if not solver.reversal_quadrature:
+                    return None
+                a0 = (drive0 - T0 / N - F0) / p.Jeff
+                towards = wm0 * a0 < 0
+                tc = jnp.where(towards, -wm0 / jnp.where(towards, a0, 1.0), 2.0 * h)
+                w_pred = wm0 + a0 * h
+                near = (jnp.minimum(jnp.abs(wm0), jnp.abs(w_pred)) < 4.0 * p.Tss2) | (wm0 * w_pred < 0)
+                return wm0, k, jnp.clip((tc - (tp - t0)) / (t1 - tp), 0.0, 1.0), F0, Fp, near
 
             def one_stage(prev, k):
                 """Stage k from the end of the one before (k = 0: the step start; k = 1: t0 + γh)."""
@@ -570,7 +646,7 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                 thmp = theta_m(qp, thop, tp)
                 thm_pred = predicted_angle(t1, t1 - tp, qp, thop, wop, thmp, wmp)
                 out, tor1, conv = stage(t1, hist, tho_hist, thm_pred, (thmp, wmp, Tp, torp, zp), sp,
-                                        (wm0, k, jnp.clip((tc - (tp - t0)) / (t1 - tp), 0.0, 1.0), F0, Fp, near))
+                                        crossing(k, tp, t1, Fp))
                 return (out, tor1), conv
 
             (out, _), conv = jax.lax.scan(one_stage, (state, tor0), jnp.arange(2))
