@@ -146,6 +146,9 @@ def run_effects(ds, n_records, substeps, corrector=True, rq=False):
             ok = "" if bool(jnp.all(tr.success)) else "!"
             cells.append(f"{rT:8.3f} ({mT:5.2f}){ok} {rw:8.3f} ({mw:5.2f})")
         print(f"{name:>28} " + " ".join(cells), flush=True)
+        # every effect and step count is a new program: without this the one process ran out of
+        # mapped memory for LLVM's code (2026-12-06, both tables of `--effects --reversal-quadrature`)
+        jax.clear_caches()
     print("worst RMS over the effects: " + ", ".join(f"m = {m}: {worst[m]:.3f} σ" for m in substeps)
           + "  ('!': some root not converged)")
 

@@ -201,6 +201,11 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
     assert sim.rtol == opts["rtol"] and isinstance(sim.solver, hdjax.Rodas3)
     sim = trajectory_simulator({**opts, "solver": "velocity_implicit", "substeps": 2})
     assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.substeps == 2
+    assert not sim.solver.reversal_quadrature
+    sim = trajectory_simulator({**opts, "reversal_quadrature": True})
+    assert isinstance(sim.solver, hdjax.VelocityImplicit) and sim.solver.reversal_quadrature
+    with pytest.raises(ValueError, match=r"fit\.trajectory\.reversal_quadrature.*true or false"):
+        trajectory_simulator({**opts, "reversal_quadrature": "yes"})
     with pytest.raises(ValueError, match=r"fit\.trajectory\.solver.*velocity_implicit"):
         trajectory_simulator({**opts, "solver": "euler"})
     with pytest.raises(ValueError, match=r"fit\.trajectory\.substeps"):
