@@ -97,7 +97,7 @@ class VelocityImplicit(eqx.Module):
       128 substeps with it): HD1 motor velocity 0.065 σ at 4 substeps instead of 0.279 σ (0.028
       against 0.142 at 8, 0.003 against 0.098 at 16), HD2 0.019 σ instead of 0.076 σ. Costs: the
       stage's Gaussian mean in the Newton loop, a Jacobian about 1.6× and the HD2 fit command
-      about 1.4× the time (46 s against 32.5 s, cold), so off by default. Use it with 4 substeps
+      about 1.4× the time (32.1 s against 23.1 s inside, cold), so off by default. Use it with 4 substeps
       or more: at 2 it moved a stop on a locked HD1 record (torque 0.30 σ RMS there, 0.08 σ without).
     """
 
