@@ -194,7 +194,12 @@ def _viscous(w, Tv, P):
 
 def _branch_friction(w, sign, P):
     """Friction (N·m) on the branch `sign` (+1: ω_m ≥ 0, −1: ω_m ≤ 0) at velocity w."""
-    viscous, Tc, coef, g, _, ramp = _friction_parts(w, sign, P)
+    return _friction_from_parts(_friction_parts(w, sign, P), sign, P)
+
+
+def _friction_from_parts(parts, sign, P):
+    """Eq. 9 (N·m) from `_friction_parts` on the branch `sign`."""
+    viscous, Tc, coef, g, _, ramp = parts
     # under the creep ramp a negative breakaway (T_c + T_ss1 < 0, as HD2's negative direction) would
     # make the ramped term fall with speed and the step equation non-monotone: its magnitude is
     # clamped at zero there (friction never drives the motor)
@@ -255,9 +260,7 @@ def _stage_friction(w, sign, P):
     (when a stuck motor breaks away inside the step is not known; a mean from the step start moved
     breakaway by half a stage) and under the creep ramp (friction continuous there)."""
     parts = _friction_parts(w, sign, P)
-    viscous, Tc, coef, g, _, ramp = parts
-    mag = jnp.where(P["vc"] > 0, jnp.maximum(Tc + coef * g, 0.0), Tc + coef * g)
-    plain = viscous + sign * ramp * mag  # `_branch_friction`
+    plain = _friction_from_parts(parts, sign, P)
     ws = P["ws"]
     here = (ws != 0) & ((ws > 0) != (sign > 0))  # this stage reverses the motor
     # the new side's mean: over [0, w] after a reversal, over [ω_s, w] otherwise (one Gaussian mean)
@@ -289,7 +292,7 @@ def _stage_friction_on(P):
     """Whether the stage takes the mean-based friction of `_stage_friction`: a step predicted to run
     through the Stribeck dip or to reverse (`near`), not from rest, not under the creep ramp; the
     same on both branches, so that the stick interval is never empty."""
-    return (P["xon"] > 0) & (P["vc"] <= 0) & (P["w0"] != 0) & (P["near"] > 0)
+    return (P["vc"] <= 0) & (P["w0"] != 0) & (P["near"] > 0)
 
 
 def _G_nofriction(s, P):
@@ -411,14 +414,14 @@ def _solve_step(P, s_guess, iterations, reversal_quadrature):
     resid = jnp.where(stuck, P["A"] * wm1, g_slip)
     scale = P["A"] * jnp.abs(P["wm_hist"]) + jnp.abs(P["drive"]) + jnp.abs(Tbar) / P["N"] + P["Tcp"] + P["Tcn"] + 1e-12
     converged = jnp.abs(resid) <= ROOT_RTOL * scale
+    if not reversal_quadrature:
+        return s, out, stuck, converged, jnp.zeros_like(resid)
     # eq. 9's own friction at the stage end (the next step's F_0) differs from the one the stage used in
     # a step through the dip or a reversal; a stuck motor's is the torque that holds it at rest, inside
     # the breakaway interval (not the stage's mean, which includes the impulse that stopped it)
     net = P["drive"] - Tbar / P["N"]
     hold = jnp.clip(net, _branch_friction(zero, -1.0, P), _branch_friction(zero, 1.0, P))
     corr = jnp.where(stuck, net - P["A"] * (wm1 - P["wm_hist"]) - hold, f_used - _branch_friction(wm1, sign, Pb))
-    if not reversal_quadrature:
-        corr = jnp.zeros_like(corr)
     return s, out, stuck, converged, corr
 
 
@@ -516,7 +519,8 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             """The stage equation's data: `hist` = (A, ω_m, q, ω_o history, bh, fh/J); the explicit
             terms (position- and load-dependent) evaluated at the predicted stage end (θ_m1, ω_m1, T1);
             `crossing` = (ω_m at the step start, ω_m at the stage start, stage k, the stage's fraction
-            before a reversal, F_0, the first stage's F) for `_stage_friction` (None: off)."""
+            before a reversal, F_0, the first stage's F, whether the step is `near` zero velocity) for
+            `_stage_friction` (None: off)."""
             A, wm_hist, q_hist, wo_hist, bh, fh_J = hist
             pdf = 1.0 + eff.periodic("position_dependent_friction", thm1)
             load = (jnp.abs(eff.load_dependent_friction.mu) * jnp.sqrt(T1 * T1 + 1e-6) / N
@@ -535,7 +539,7 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             )
             if crossing is not None:
                 w0, ws, xk, theta, F0, Fa, near = crossing
-                P.update(w0=w0, ws=ws, xk=xk, theta=theta, F0=F0, Fa=Fa, near=near, xon=1.0)
+                P.update(w0=w0, ws=ws, xk=xk, theta=theta, F0=F0, Fa=Fa, near=near)
             P = {k: jnp.asarray(v, dtype=float) for k, v in P.items()}
             P["eff"] = eff
             # friction's mean over the stage's part before a reversal, from ω_m at its start to 0 on
@@ -543,15 +547,15 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             if crossing is None:
                 return P
             side = jnp.where(P["ws"] > 0, 1.0, -1.0)
-            P["m_old"] = _side_mean_friction(P["ws"], jnp.zeros_like(P["ws"]), side, P)
             P["erfc_ws"] = jax.scipy.special.erfc(jnp.abs(P["ws"]) / P["Tss2"])
+            P["m_old"] = _side_mean_friction(P["ws"], jnp.zeros_like(P["ws"]), side, P, erfc_a=P["erfc_ws"])
             return P
 
         def stage(t1, hist, tho_hist, thm_pred, start, s_guess, crossing):
             """Solve one stage ending at t1; `start` = (θ_m, ω_m, T, torsion, z) at the stage start, from
             which the explicit terms are predicted (θ_m at the stage end: `thm_pred`); `crossing` =
             (ω_m at the step start, stage k, the stage's fraction before a reversal, F_0, the first
-            stage's F) for `_stage_friction`.
+            stage's F, `near`) for `_stage_friction`, None without `reversal_quadrature`.
 
             The corrector's second pass is the same `_solve_step` as the first, with the explicit terms
             at the first pass's stage end: both passes are one traced pass in a two-iteration
