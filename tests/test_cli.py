@@ -214,6 +214,43 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
         trajectory_simulator({**opts, "solver": "ros34pw2", "rtol": 0.0})
 
 
+def test_fit_sensor_bandwidth_option_frees_both_sensor_lags():
+    """`fit.trajectory.sensor_bandwidth` (default true) makes the joint fit apply a first-order lag
+    to the simulated torque and motor velocity and fit both time constants from 0 on the scale of
+    the sample period; false fits none; anything but true or false names its key."""
+    from hdjax._workflows.fit import DEFAULTS, SENSOR_LAGS, _options, sensor_model
+
+    opts = dict(DEFAULTS["trajectory"])
+    assert opts["sensor_bandwidth"] is True
+    effects, free = sensor_model(opts, 1e-3)
+    assert effects.active == {"sensor_bandwidth"} and free == {path: 1e-3 for path in SENSOR_LAGS}
+    assert float(effects.sensor_bandwidth.torque_lag) == float(effects.sensor_bandwidth.velocity_lag) == 0.0
+    effects, free = sensor_model({**opts, "sensor_bandwidth": False}, 1e-3)
+    assert not effects.active and free == {}
+    with pytest.raises(ValueError, match=r"fit\.trajectory\.sensor_bandwidth.*true or false"):
+        _options({"fit": {"trajectory": {"sensor_bandwidth": "on"}}})
+
+
+def test_freed_effect_parameters_are_checked_before_any_work():
+    """`fit_parameters(free_effects=...)`: a path that names no effect field, a term that `effects`
+    does not switch on, or a scale that is not positive is refused with the path named."""
+    from hdjax import Effects
+    from hdjax._fit.least_squares import make_effect_map
+    from hdjax._model.effects import SensorBandwidth
+
+    on = Effects().with_term(SensorBandwidth())
+    assert make_effect_map(on, None) is None and make_effect_map(on, {}) is None
+    emap = make_effect_map(on.with_values("sensor_bandwidth", torque_lag=2e-4), {"sensor_bandwidth.torque_lag": 1e-3})
+    assert emap is not None and emap.fields == ("sensor_bandwidth.torque_lag",)
+    assert float(emap.to_vector(on.with_values("sensor_bandwidth", torque_lag=2e-4))[0]) == 0.0  # starts where given
+    with pytest.raises(ValueError, match=r"sensor_bandwidth\.torque_delay.*'<term>\.<field>'"):
+        make_effect_map(on, {"sensor_bandwidth.torque_delay": 1e-3})
+    with pytest.raises(ValueError, match=r"sensor_bandwidth\.torque_lag.*does not switch"):
+        make_effect_map(Effects(), {"sensor_bandwidth.torque_lag": 1e-3})
+    with pytest.raises(ValueError, match=r"scale > 0"):
+        make_effect_map(on, {"sensor_bandwidth.torque_lag": 0.0})
+
+
 def test_diagnose_solver_option_builds_the_named_simulator():
     """`diagnose.solver` picks the diagnosis's numerics: the fixed-step stepper at `substeps` (the
     default, as the library's `diagnose`) or adaptive Rodas3 at `rtol`, both with the periodic terms

@@ -31,7 +31,8 @@ import jax
 import numpy as np
 import pytest
 
-from hdjax import Parameters, fit_parameters, friction_torque, identify_paper, load_dataset, stack_experiments
+from hdjax import Effects, Parameters, fit_parameters, friction_torque, identify_paper, load_dataset, stack_experiments
+from hdjax._model.effects import SensorBandwidth
 from hdjax.bench import make_dataset
 
 jax.config.update("jax_enable_x64", True)
@@ -53,6 +54,13 @@ def fits(tmp_path_factory):
         speeds = np.concatenate([np.asarray(e.motor_velocity) for e in exps if float(e.free) == 1.0])
         true_p = Parameters.from_dict({**start.to_dict(), **truth["parameters"]})
         out[drive] = (true_p, start, fit, speeds)
+        # the same fit with the sensors' bandwidth: first-order lags of the simulated torque and
+        # velocity, both fitted (what `python -m hdjax.fit` does by default)
+        dt = float(np.median(np.diff(np.asarray(exps[0].time))))
+        lagged = fit_parameters(start, ds.drive, stack_experiments(exps), max_steps=20, sigma=fit.sigma,
+                                effects=Effects().with_term(SensorBandwidth()),
+                                free_effects={"sensor_bandwidth.torque_lag": dt, "sensor_bandwidth.velocity_lag": dt})
+        out[drive + "_lags"] = (truth, fit, lagged)
     return out
 
 
@@ -98,3 +106,33 @@ def test_fitted_friction_matches_the_bench_at_the_measured_speeds(fits, drive):
         assert np.all(np.abs(w) > 0.05)  # beyond the bench's stick band
         err = np.abs(np.asarray(friction_torque(fit.params, w)) / true_t - 1)
         assert np.all(err < 0.03), (sign, w, err)
+
+
+@pytest.mark.parametrize("drive", [d for d, _ in CASES])
+def test_fitted_sensor_lags_match_the_bench_filters_and_lower_the_misfit(fits, drive):
+    """The bench low-pass filters its strain gauge and tachometer (first order, on its 20 kHz grid,
+    before sampling: its own code); hdjax's `sensor_bandwidth` is a first-order lag of the simulated
+    samples. Fitted with the parameters (what `python -m hdjax.fit` does by default):
+    - the tachometer's lag, well determined, lands within 20 % of the bench filter's time constant
+      1/(2π f_c) and within 3 of its standard errors (measured 2026-12-06: +5.1 % and −0.6 %);
+    - the strain gauge's, which these 2 + 2 records of 1 s determine only to about its own size
+      (standard error 0.31–0.36 ms against 0.30 ms), within 3 of its standard errors (measured: 0.2
+      and 1.8); on the shipped 50-record campaigns it came within 7 % (benchmarks/RESULTS.md);
+    - the reduced χ² falls (measured 5.0 → 2.0 and 8.1 → 2.8): without the lags the filters' phase
+      lag stays in the residual;
+    - K1 and Jeff come closer to the truth (worst of the two 1.26 % → 0.10 %, 1.12 % → 0.82 %): the
+      phase lag near the free-motion resonance reads as a softer or heavier drive."""
+    truth, plain, lagged = fits[drive + "_lags"]
+    dev = truth["deviations"]
+    taus = {f: 1.0 / (2.0 * np.pi * float(dev[key])) for f, key in (("torque_lag", "torque_filter_hz"), ("velocity_lag", "tacho_filter_hz"))}
+    got = {f: float(getattr(lagged.effects.sensor_bandwidth, f)) for f in taus}
+    se = {f: lagged.std_error["sensor_bandwidth." + f] for f in taus}
+    assert abs(got["velocity_lag"] / taus["velocity_lag"] - 1) < 0.2, (got, taus)
+    for f in taus:
+        assert 0 < se[f] and abs(got[f] - taus[f]) < 3 * se[f], (f, got[f], taus[f], se[f])
+    assert lagged.free_effects == ("sensor_bandwidth.torque_lag", "sensor_bandwidth.velocity_lag")
+    assert lagged.correlation.shape == (len(lagged.free) + 2,) * 2
+    assert lagged.chi2_reduced < plain.chi2_reduced, (lagged.chi2_reduced, plain.chi2_reduced)
+    tp = truth["parameters"]
+    worst = {name: max(abs(float(getattr(fit.params, k)) / tp[k] - 1) for k in ("K1", "Jeff")) for name, fit in (("plain", plain), ("lags", lagged))}
+    assert worst["lags"] < worst["plain"], worst

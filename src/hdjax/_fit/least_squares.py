@@ -22,7 +22,7 @@ error cannot dominate it; what remains (torsion and acceleration history) carrie
 
 import dataclasses
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import equinox as eqx
 import jax
@@ -34,7 +34,7 @@ from jaxtyping import Array, Float
 from numpy.typing import ArrayLike
 
 from .._data.experiment import Experiment, take_rows
-from .._model.effects import Effects
+from .._model.effects import TERMS, Effects
 from .._model.paper import PARAMETER_NAMES, Drive, Parameters
 from .._plant.sharding import (
     experiment_batching,
@@ -83,6 +83,41 @@ def make_parameter_map(p0: Parameters, free) -> Parameterisation:
             entries.append(Entry(k))
             scale.append(max(abs(v), 1e-3))
     return parameterisation(entries, np.asarray(scale))
+
+
+def make_effect_map(effects: Effects, free_effects: Mapping[str, float] | None) -> Parameterisation | None:
+    """The `Parameterisation` of the effect parameters a trajectory-error fit frees: each dotted path
+    of `free_effects` into `effects` (e.g. "sensor_bandwidth.torque_lag") on a linear scale, from
+    its value in `effects` (vector 0) with the given scale (one unit of the vector, e.g. the sample
+    period for a time constant). None when nothing is freed."""
+    if not free_effects:
+        return None
+    paths, scales, starts = [], [], []
+    for path, scale in free_effects.items():
+        name, _, field = path.partition(".")
+        if name not in TERMS or field not in {f.name for f in dataclasses.fields(TERMS[name])}:
+            raise ValueError(f"`fit_parameters`: unknown effect parameter {path!r} in `free_effects`; give "
+                             "'<term>.<field>', e.g. 'sensor_bandwidth.torque_lag'.")
+        if name not in effects.active:
+            raise ValueError(f"`fit_parameters`: effect parameter {path!r} is freed, but `effects` does not switch "
+                             f"{name!r} on; pass `effects=Effects().with_term(...)` with it active.")
+        value = np.asarray(getattr(effects.term(name), field), dtype=float)
+        if value.shape != () or not np.isfinite(value) or not float(scale) > 0:
+            raise ValueError(f"`fit_parameters`: effect parameter {path!r} must be a finite scalar with a scale > 0, "
+                             f"got value {value} and scale {scale!r}.")
+        paths.append(Entry(path))
+        scales.append(float(scale))
+        starts.append(float(value))
+    return parameterisation(paths, np.asarray(scales), np.asarray(starts))
+
+
+def _models(theta, pmap: Parameterisation, p0: Parameters, emap: Parameterisation | None, e0: Effects):
+    """(Parameters, Effects) of a fit vector θ: the paper parameters of `pmap` first, then the effect
+    parameters of `emap` (none: `e0` as given)."""
+    if emap is None:
+        return pmap.to_model(theta, p0), e0
+    n = pmap.size
+    return pmap.to_model(theta[:n], p0), emap.to_model(theta[n:], e0)
 
 
 def white_noise_level(x: ArrayLike) -> float:
@@ -223,15 +258,20 @@ class TrajectoryFit(eqx.Module):
 
     - `params`: fitted `Parameters` (SI).
     - `free`: names of the fitted parameters.
-    - `std_error`: standard error per fitted parameter (SI), robust to a misfit that is correlated
-      in time (`std_error_method`, see `block_covariance`).
+    - `effects`: the `Effects` every simulation of the fit applied, with the freed effect parameters
+      at their fitted values (`Effects()` when the fit used none).
+    - `free_effects`: the dotted paths of the fitted effect parameters (e.g.
+      "sensor_bandwidth.torque_lag"), after `free` in the vector, the Jacobian and `correlation`.
+    - `std_error`: standard error per fitted parameter (SI; effect parameters by path), robust to a
+      misfit that is correlated in time (`std_error_method`, see `block_covariance`).
     - `std_error_white`: the Gauss–Newton standard error, σ²(JᵀJ)⁻¹ with σ² the reduced χ²: right
       only when the residuals are white; on a bench where the model is not exact it is too small
       (`fit_parameters`'s `se_block`).
     - `std_error_method`: "block_sandwich" (`std_error` from `block_covariance`) or "white" (too
       few blocks for it; `std_error` is then `std_error_white`).
     - `se_block`: the block length of `block_covariance` (s).
-    - `correlation`: correlation matrix of the fitted parameters (order of `free`), from the
+    - `correlation`: correlation matrix of the fitted parameters (order of `free`, then
+      `free_effects`), from the
       covariance that gives `std_error`.
     - `chi2_reduced`: residual sum of squares / (n − p); ≈1 when the model explains the data
       to the noise level.
@@ -249,6 +289,8 @@ class TrajectoryFit(eqx.Module):
 
     params: Parameters
     free: tuple[str, ...] = eqx.field(static=True)
+    effects: Effects
+    free_effects: tuple[str, ...] = eqx.field(static=True)
     std_error: dict[str, float]
     std_error_white: dict[str, float]
     std_error_method: str
@@ -450,6 +492,8 @@ def fit_parameters(
     sigma=None,
     se_block: float = 0.1,
     throw: bool = True,
+    effects: Effects = Effects(),
+    free_effects: Mapping[str, float] | None = None,
 ) -> TrajectoryFit:
     """Fit `free` parameters on the trajectory error of all experiments of `batch` at once.
 
@@ -469,21 +513,28 @@ def fit_parameters(
     0.05–0.25 s blocks gave standard errors within 2× of each other, single-sample blocks 4–6× smaller; with
     fewer than two blocks per fitted parameter the white-noise errors are reported); `throw` (as in
     optimistix: raise a `RuntimeError` when LM stops without converging;
-    with `throw=False` the result is returned and `result` / `converged` say how it ended).
+    with `throw=False` the result is returned and `result` / `converged` say how it ended);
+    `effects` (terms every simulation applies, e.g. the sensors' first-order lags of
+    `sensor_bandwidth`), `free_effects` (dotted paths into `effects` fitted with the parameters,
+    each with its scale, one unit of the LM vector: `{"sensor_bandwidth.torque_lag": dt}`; on a
+    linear scale from their values in `effects`, see `make_effect_map`).
 
     **Returns:** a `TrajectoryFit`.
     """
     pmap = make_parameter_map(p0, free)
+    emap = make_effect_map(effects, free_effects)
     sigma = fit_noise_levels(p0, drive, batch, simulator=simulator) if sigma is None else jnp.asarray(sigma)
-    theta0 = pmap.to_vector(p0)
+    theta0 = pmap.to_vector(p0) if emap is None else jnp.concatenate([pmap.to_vector(p0), emap.to_vector(effects)])
+    names = tuple(free) + (() if emap is None else emap.fields)
     # several devices: split the experiment axis over all of them (masked dummies pad the batch)
     mesh = experiment_mesh() if jax.device_count() > 1 else None
     n_exp = int(batch.time.shape[0])  # the real experiments (the progress line counts no dummies)
     if mesh is not None:
         batch, _ = shard_experiments(batch, mesh)
-    with lm_progress(f"LM fit ({len(free)} parameters, {n_exp} experiments)", max_steps) as callback:
+    with lm_progress(f"LM fit ({len(names)} parameters, {n_exp} experiments)", max_steps) as callback:
         run = _cached(_joint_fit_program, pmap.fields, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh)
-        theta, result, reason, steps, r, J = jax.block_until_ready(run(theta0, (pmap, p0, drive, batch, sigma), callback))
+        theta, result, reason, steps, r, J = jax.block_until_ready(
+            run(theta0, (pmap, p0, emap, effects, drive, batch, sigma), callback))
     stop = str(_stop_reason(result, reason))
     if throw and stop == "max_steps":
         raise RuntimeError(
@@ -492,24 +543,30 @@ def fit_parameters(
             "`converged=False`.")
     theta, r, J = np.asarray(theta), np.asarray(r), np.asarray(J)
     n_obs = int(np.sum(r != 0.0))
-    chi2 = float(np.sum(r**2) / max(n_obs - len(free), 1))
+    chi2 = float(np.sum(r**2) / max(n_obs - len(names), 1))
     cov_white = white_covariance(J, chi2)
     blocks = np.broadcast_to(time_blocks(np.asarray(batch.time), se_block)[:, None, :], (batch.time.shape[0], 3, batch.time.shape[1]))
     cov_robust, how = robust_covariance(J, r, blocks, lambda: cov_white)  # residual rows: experiment, channel, sample
     method = "block_sandwich" if how == "block_sandwich" else "white"
-    # delta method: d p / d theta
-    dp = np.asarray(_model_jacobian(jnp.asarray(theta), pmap, p0, tuple(free)))
+    # delta method: d p / d theta (the effect parameters are linear in theta: their scales)
+    n_p = pmap.size
+    dp = np.zeros((len(names), len(names)))
+    dp[:n_p, :n_p] = np.asarray(_model_jacobian(jnp.asarray(theta[:n_p]), pmap, p0, tuple(free)))
+    if emap is not None:
+        dp[n_p:, n_p:] = np.diag(np.asarray(emap.scale))
     cov = dp @ cov_robust @ dp.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     se_white = np.sqrt(np.clip(np.diag(dp @ cov_white @ dp.T), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
-    params = pmap.to_model(jnp.asarray(theta), p0)
+    params, fitted_effects = _models(jnp.asarray(theta), pmap, p0, emap, effects)
     return TrajectoryFit(
         params=params,
         free=tuple(free),
-        std_error={k: float(v) for k, v in zip(free, se)},
-        std_error_white={k: float(v) for k, v in zip(free, se_white)},
+        effects=fitted_effects,
+        free_effects=() if emap is None else emap.fields,
+        std_error={k: float(v) for k, v in zip(names, se)},
+        std_error_white={k: float(v) for k, v in zip(names, se_white)},
         std_error_method=method,
         se_block=float(se_block),
         correlation=corr,
@@ -566,6 +623,7 @@ def fit_per_experiment(
     step_se_tol: float = 0.1,
     cost_rtol: float = 1e-5,
     sigma=None,
+    effects: Effects = Effects(),
 ) -> PerExperimentFit:
     """One trajectory-error LM fit per experiment, all by one compiled program (`for_each_experiment`:
     `lax.map` on the CPU, `vmap` on accelerators). On the CPU it is called on chunks of the batch
@@ -593,7 +651,9 @@ def fit_per_experiment(
     its Stribeck amplitude to +0.31 N·m (χ²_red 51.4, against −0.01 … −0.07 N·m on every other
     record).
 
-    **Arguments:** as `fit_parameters`, plus `mask`: (experiments, len(free)) bool.
+    **Arguments:** as `fit_parameters`, plus `mask`: (experiments, len(free)) bool; `effects` are
+    applied in every simulation and held at their values (for example the joint fit's fitted sensor
+    lags, `TrajectoryFit.effects`).
 
     (About 100 lines through this docstring; the body is one pass: slots per experiment, then the
     chunks that report progress, then the estimates read back.)
@@ -635,7 +695,7 @@ def fit_per_experiment(
             idx = jnp.asarray(np.concatenate([slot_index[take], np.zeros((pad, n_slots), dtype=int)]))
             on = jnp.asarray(np.concatenate([slot_on[take], np.zeros((pad, n_slots))]))
             z, result, reason, steps, r = jax.block_until_ready(
-                run(jnp.zeros((chunk, n_slots)), (pmap, theta0, p0, drive, part, sigma, idx, on)))
+                run(jnp.zeros((chunk, n_slots)), (pmap, theta0, p0, effects, drive, part, sigma, idx, on)))
             parts.append([np.asarray(x)[:n_real] for x in (z, steps, r)] + [_stop_reason(result, reason)[:n_real]])
             if done is not None:
                 for _ in range(n_real):
@@ -799,21 +859,21 @@ def _stepped_least_squares(fn, solver: optx.AbstractLeastSquaresSolver, *, max_s
 
 @functools.lru_cache(maxsize=32)
 def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh):
-    """The compiled joint fit: `run(theta0, (pmap, p0, drive, batch, sigma), on_step=None)` → (θ,
+    """The compiled joint fit: `run(theta0, (pmap, p0, emap, effects, drive, batch, sigma), on_step=None)` → (θ,
     result, stop rule, steps, residual, Jacobian at θ); LM stepped from Python
     (`_stepped_least_squares`), so its programs hold no host callback and JAX's persistent cache
     keeps them."""
 
     def residuals(theta, args):
-        pmap, p0_, drive_, batch_, sigma_ = args
-        p = pmap.to_model(theta, p0_)
+        pmap, p0_, emap, e0, drive_, batch_, sigma_ = args
+        p, eff = _models(theta, pmap, p0_, emap, e0)
 
         def per_experiment(shared, b):
-            p_, d_, s_ = shared
-            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator), b,
+            p_, eff_, d_, s_ = shared
+            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator, eff_), b,
                                        fixed_cost=is_fixed_cost(simulator))
 
-        r = map_experiments(per_experiment, mesh)((p, drive_, sigma_), batch_)
+        r = map_experiments(per_experiment, mesh)((p, eff, drive_, sigma_), batch_)
         return r.reshape(-1)
 
     def finish(theta, state, result, num_steps, args):
@@ -841,28 +901,28 @@ def _full_theta(z, theta0, idx, on):
 
 @functools.lru_cache(maxsize=32)
 def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh):
-    """The compiled per-experiment fits: `run(z0, (pmap, θ0, p0, drive, batch, sigma, idx, on))` →
+    """The compiled per-experiment fits: `run(z0, (pmap, θ0, p0, effects, drive, batch, sigma, idx, on))` →
     per experiment (z, result, stop rule, steps, residual). It holds no host callback, so JAX's
     persistent cache keeps it; `fit_per_experiment` calls it on chunks of the batch and reports
     its progress between them (`_per_experiment_chunk`)."""
 
     def residuals(z, args):
-        pmap, theta0_, p0_, drive_, exp, sigma_, idx, on = args
+        pmap, theta0_, p0_, eff, drive_, exp, sigma_, idx, on = args
         p = pmap.to_model(_full_theta(z, theta0_, idx, on), p0_)
-        return experiment_residuals(p, drive_, exp, sigma_, simulator).reshape(-1)
+        return experiment_residuals(p, drive_, exp, sigma_, simulator, eff).reshape(-1)
 
     residuals_lm = _lm_objective(residuals)
     lm = CostStop(solver, step_se_tol=step_se_tol, cost_rtol=cost_rtol)  # pyright: ignore[reportCallIssue]  rtol/atol/norm are properties
 
     @eqx.filter_jit
     def run(z, args):
-        pmap, theta0_, p0_, drive_, batch_, sigma_, idx, on = args
+        pmap, theta0_, p0_, eff, drive_, batch_, sigma_, idx, on = args
 
         def per_device(shared, b):
-            pmap_, theta0_d, p0_d, drive_d, sigma_d = shared
+            pmap_, theta0_d, p0_d, eff_d, drive_d, sigma_d = shared
 
             def one(z_e, exp, idx_e, on_e):
-                sol = optx.least_squares(residuals_lm, lm, z_e, (pmap_, theta0_d, p0_d, drive_d, exp, sigma_d, idx_e, on_e),
+                sol = optx.least_squares(residuals_lm, lm, z_e, (pmap_, theta0_d, p0_d, eff_d, drive_d, exp, sigma_d, idx_e, on_e),
                                          max_steps=max_steps, throw=False)
                 return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
 
@@ -870,6 +930,6 @@ def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol,
             # `for_each_experiment`); on one device and on accelerators as the batching says
             return for_each_experiment(one, *b, lapack_in_device_map=mesh is not None)
 
-        return map_experiments(per_device, mesh)((pmap, theta0_, p0_, drive_, sigma_), (z, batch_, idx, on))
+        return map_experiments(per_device, mesh)((pmap, theta0_, p0_, eff, drive_, sigma_), (z, batch_, idx, on))
 
     return run
