@@ -1,13 +1,17 @@
 """Benchmark (not a test): `python -m hdjax.fit configs/hd2.yaml` end to end on the shipped
-50-experiment campaign; prints wall time and the timing recorded in fit.json, and the recovery
-against truth.yaml."""
+50-experiment campaign; prints wall time and the timing recorded in fit.json, the recovery
+against truth.yaml, and the fitted sensor lags against the bench's filters (truth.yaml's
+`deviations`: first-order low-passes, time constant 1/(2π f_c))."""
 
 import json
+import math
 import pathlib
 import subprocess
 import sys
 import tempfile
 import time
+
+import yaml
 
 root = pathlib.Path(__file__).resolve().parents[1]
 config = sys.argv[1] if len(sys.argv) > 1 else str(root / "configs" / "hd2.yaml")
@@ -24,3 +28,12 @@ for k, e in d["parameters"].items():
         print(f"{k}: fit {e['value']:.5g} paper {e['paper_method']['value']} truth {e['truth']:.5g} "
               f"err {100 * (e['value'] / e['truth'] - 1):+.2f} % consistency {e['consistency']}")
 print("nrmse", d["fit"]["nrmse"])
+sb = (d.get("sensor_model") or {}).get("sensor_bandwidth")
+dataset = (pathlib.Path(config).parent / yaml.safe_load(pathlib.Path(config).read_text())["dataset"]).resolve()
+dev = (yaml.safe_load((dataset / "truth.yaml").read_text()) or {}).get("deviations", {}) if (dataset / "truth.yaml").exists() else {}
+for field, key in (("torque_lag", "torque_filter_hz"), ("velocity_lag", "tacho_filter_hz")):
+    if sb:
+        e = sb[field]
+        true = f", the bench's filter {1e3 / (2 * math.pi * float(dev[key])):.4f} ms" if dev.get(key) else ""
+        print(f"{field}: {1e3 * e['value']:.4f} ± {1e3 * e['std_error']:.4f} ms{true}")
+print("chi2_reduced", d["fit"]["chi2_reduced"])
