@@ -28,7 +28,7 @@ for k, e in d["parameters"].items():
         print(f"{k}: fit {e['value']:.5g} paper {e['paper_method']['value']} truth {e['truth']:.5g} "
               f"err {100 * (e['value'] / e['truth'] - 1):+.2f} % consistency {e['consistency']}")
 print("nrmse", d["fit"]["nrmse"])
-sb = (d.get("sensor_model") or {}).get("sensor_bandwidth")
+sb = (d.get("model_form") or {}).get("sensor_bandwidth")
 dataset = (pathlib.Path(config).parent / yaml.safe_load(pathlib.Path(config).read_text())["dataset"]).resolve()
 dev = (yaml.safe_load((dataset / "truth.yaml").read_text()) or {}).get("deviations", {}) if (dataset / "truth.yaml").exists() else {}
 for field, key in (("torque_lag", "torque_filter_hz"), ("velocity_lag", "tacho_filter_hz")):
@@ -37,3 +37,6 @@ for field, key in (("torque_lag", "torque_filter_hz"), ("velocity_lag", "tacho_f
         true = f", the bench's filter {1e3 / (2 * math.pi * float(dev[key])):.4f} ms" if dev.get(key) else ""
         print(f"{field}: {1e3 * e['value']:.4f} ± {1e3 * e['std_error']:.4f} ms{true}")
 print("chi2_reduced", d["fit"]["chi2_reduced"])
+for field, e in ((d.get("model_form") or {}).get("breakaway_friction") or {}).items():
+    if field != "note":
+        print(f"breakaway {field}: {e['value']:.4g} N·m (grid search)")

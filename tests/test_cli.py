@@ -217,18 +217,24 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
 def test_fit_sensor_bandwidth_option_frees_both_sensor_lags():
     """`fit.trajectory.sensor_bandwidth` (default true) makes the joint fit apply a first-order lag
     to the simulated torque and motor velocity and fit both time constants from 0 on the scale of
-    the sample period; false fits none; anything but true or false names its key."""
-    from hdjax._workflows.fit import DEFAULTS, SENSOR_LAGS, _options, sensor_model
+    the sample period; `breakaway_friction` (opt-in) switches the static-friction excesses on
+    at 0 for the grid search after LM (not freed in LM: no derivative), and needs the fixed-step
+    solver; false fits none; anything but true or false names its key."""
+    from hdjax._workflows.fit import DEFAULTS, SENSOR_LAGS, _options, fit_model_form
 
     opts = dict(DEFAULTS["trajectory"])
-    assert opts["sensor_bandwidth"] is True
-    effects, free = sensor_model(opts, 1e-3)
-    assert effects.active == {"sensor_bandwidth"} and free == {path: 1e-3 for path in SENSOR_LAGS}
+    assert opts["sensor_bandwidth"] is True and opts["breakaway_friction"] is False
+    effects, free = fit_model_form({**opts, "breakaway_friction": True}, 1e-3)
+    assert effects.active == {"sensor_bandwidth", "breakaway_friction"} and free == {path: 1e-3 for path in SENSOR_LAGS}
     assert float(effects.sensor_bandwidth.torque_lag) == float(effects.sensor_bandwidth.velocity_lag) == 0.0
-    effects, free = sensor_model({**opts, "sensor_bandwidth": False}, 1e-3)
+    assert float(effects.breakaway_friction.excess_p) == float(effects.breakaway_friction.excess_n) == 0.0
+    effects, free = fit_model_form({**opts, "sensor_bandwidth": False, "breakaway_friction": False}, 1e-3)
     assert not effects.active and free == {}
-    with pytest.raises(ValueError, match=r"fit\.trajectory\.sensor_bandwidth.*true or false"):
-        _options({"fit": {"trajectory": {"sensor_bandwidth": "on"}}})
+    for key in ("sensor_bandwidth", "breakaway_friction"):
+        with pytest.raises(ValueError, match=rf"fit\.trajectory\.{key}.*true or false"):
+            _options({"fit": {"trajectory": {key: "on"}}})
+    with pytest.raises(ValueError, match=r"breakaway_friction: true.*velocity_implicit"):
+        _options({"fit": {"trajectory": {"solver": "rodas3", "breakaway_friction": True}}})
 
 
 def test_freed_effect_parameters_are_checked_before_any_work():

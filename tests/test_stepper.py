@@ -302,3 +302,41 @@ def test_reversal_quadrature_derivatives_match_finite_differences():
         fd = (out(v0.at[k].add(h)) - out(v0.at[k].add(-h))) / (2 * h)
         rel = float(jnp.linalg.norm(J[:, k] - fd) / jnp.linalg.norm(fd))
         assert rel < 1e-5, (names[k], rel)
+
+
+def test_breakaway_friction_holds_the_motor_until_its_static_torque_and_changes_nothing_at_zero():
+    """`breakaway_friction` widens the stick band by its excesses (static friction above eq. 9's at
+    rest) and leaves sliding friction alone. On a locked HD1 record whose current ramps slowly from
+    rest, the motor must stay at rest exactly while the torque that holds it, Km·i − T/N, is below
+    Tsp + Tssp1 + b_p, and move once it exceeds it by a margin; excesses of 0 give the plain
+    stepper's trajectory to the bit; the adaptive plant (smoothed friction, no set-valued sticking)
+    refuses the term, as does the diagnosis (it does not screen it)."""
+    p, drive = hd1()
+    t = np.arange(0.0, 0.4, 1e-3)
+    i = 5.0 * t  # A: the drive torque Km·i rises by 0.27 N·m per second
+    z = np.zeros_like(t)
+    exp = hdjax.make_experiment(t, i, z, z, mode="constrained")
+    sim = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=4))
+    plain = hdjax.simulate(p, drive, exp, simulator=sim)
+    zero = hdjax.Effects().with_values("breakaway_friction", excess_p=0.0, excess_n=0.0)
+    np.testing.assert_array_equal(np.asarray(hdjax.simulate(p, drive, exp, effects=zero, simulator=sim).torque),
+                                  np.asarray(plain.torque))
+    b = 0.01
+    tr = hdjax.simulate(p, drive, exp, effects=zero.with_values("breakaway_friction", excess_p=b), simulator=sim)
+    held = drive.torque_constant * i - np.asarray(tr.torque) / drive.gear_ratio  # the torque holding the motor
+    wm = np.asarray(tr.motor_velocity)
+    static = float(p.Tsp + p.Tssp1) + b
+    k = int(np.argmax(wm != 0.0))  # the first sample in motion
+    assert k > 0 and np.all(wm[:k] == 0.0)
+    # held at rest up to the static torque, and not released before it (the holding torque rises by
+    # 0.27 mN·m per sample)
+    assert held[:k].max() <= static + 1e-3 and held[k - 1] >= static - 1e-3, (held[k - 1], static)
+    wm_plain = np.asarray(plain.motor_velocity)
+    k_plain = int(np.argmax(wm_plain != 0.0))
+    assert 0 < k_plain < k  # the plain stepper slips earlier, at eq. 9's breakaway
+    held_plain = drive.torque_constant * i - np.asarray(plain.torque) / drive.gear_ratio
+    assert abs(held_plain[k_plain - 1] - float(p.Tsp + p.Tssp1)) < 1e-3
+    with pytest.raises(ValueError, match="breakaway_friction"):
+        hdjax.simulate(p, drive, exp, effects=zero, simulator=hdjax.Simulator())
+    with pytest.raises(ValueError, match="breakaway_friction.*not screened"):
+        hdjax.diagnose_effects(p, drive, [exp], model_form=["breakaway_friction"])

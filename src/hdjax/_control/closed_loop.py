@@ -319,6 +319,9 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
     `law(state, r_k, y_k, w_k) -> (state, current, command)`, hold the current over the interval
     and advance the plant over it by `substeps` steps of `solver`: "velocity_implicit" (the
     fixed-step exact plant, `hdjax._plant.stepper`) or "rodas3" (`_run_loop_rodas3`)."""
+    if solver == "rodas3" and "breakaway_friction" in plant.effects.active:
+        raise ValueError("closed loop: `breakaway_friction` needs the velocity_implicit plant's exact sticking; "
+                         "use solver='velocity_implicit' for such a plant.")
     if solver == "rodas3":
         return _run_loop_rodas3(law, law_state0, plant, reference, sample_period=sample_period, noise=noise,
                                 substeps=substeps, smoothing=smoothing, refine=refine)

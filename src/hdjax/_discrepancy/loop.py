@@ -145,8 +145,10 @@ from .._fit.least_squares import (
 )
 from .._fit.parameterisation import Entry, Parameterisation, parameterisation
 from .._model.effects import (
+    DIAGNOSED_MODEL_FORM,
     EFFECT_NAMES,
     FIELD_UNITS,
+    FIT_ONLY,
     MAX_ORDER,
     MODEL_FORM,
     MODEL_FORM_NAMES,
@@ -177,7 +179,7 @@ from .significance import OUTPUT_ERROR_RULES, Significance, drift_trend_test, dr
 #: SPEC §4 effects of the plant that this loop does not screen (dropped from any candidate list):
 #: `presliding_friction`, tried inside `low_speed_friction`, took the default bench from 17 to 15 of
 #: 20 datasets (benchmarks/RESULTS.md, thirty-first session).
-NOT_SCREENED = frozenset({"presliding_friction"})
+NOT_SCREENED = frozenset({"presliding_friction"}) | FIT_ONLY
 #: The candidate effects a diagnosis screens by default.
 SCREENED_EFFECTS = tuple(n for n in EFFECT_NAMES if n not in NOT_SCREENED)
 
@@ -510,6 +512,10 @@ def _check_names(candidates, model_form, cross_validation) -> tuple[list[str], l
     unknown = sorted(set(model_form) - set(MODEL_FORM_NAMES))
     if unknown:
         raise ValueError(f"`diagnose`: unknown model_form assumption(s) {unknown}; known: {list(MODEL_FORM_NAMES)}.")
+    fit_only = sorted(set(model_form) & FIT_ONLY)
+    if fit_only:
+        raise ValueError(f"`diagnose`: {fit_only} is fitted by `hdjax fit`, not screened by the diagnosis; "
+                         f"choose model_form from {list(DIAGNOSED_MODEL_FORM)}.")
     if cross_validation not in ("leave_one_out", "two_fold"):
         raise ValueError(f"`diagnose`: cross_validation must be 'leave_one_out' or 'two_fold', got {cross_validation!r}.")
     return candidates, model_form
@@ -1633,7 +1639,7 @@ def diagnose(
     experiments: list[Experiment],
     *,
     candidates=SCREENED_EFFECTS,
-    model_form=MODEL_FORM_NAMES,
+    model_form=DIAGNOSED_MODEL_FORM,
     base_free=DEFAULT_FREE,
     base_steps: int = 5,
     max_findings: int = 3,

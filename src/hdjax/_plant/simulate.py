@@ -544,6 +544,9 @@ def simulate(
     if isinstance(simulator.solver, VelocityImplicit) and "presliding_friction" in effects.active:
         raise ValueError("`simulate`: `VelocityImplicit` does not model `presliding_friction` (its exact sticking is "
                          "that law's δ → 0 limit); use the default solver (`Rodas3`) or `PLANT_W_METHOD` for it.")
+    if not isinstance(simulator.solver, VelocityImplicit) and "breakaway_friction" in effects.active:
+        raise ValueError("`simulate`: `breakaway_friction` (static friction above eq. 9's) needs exact set-valued "
+                         "sticking; use `Simulator(solver=VelocityImplicit(...))` for it.")
     return _simulate_one(p, drive, exp, effects, simulator)
 
 

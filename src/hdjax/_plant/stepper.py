@@ -121,6 +121,17 @@ class VelocityImplicit(eqx.Module):
 ROOT_RTOL = 1e-7
 
 
+def _static_bounds(lo, hi, P):
+    """The stick interval [lo, hi] (N·m) of eq. 9's friction at rest, widened by
+    `breakaway_friction`'s excesses (static friction above eq. 9's limit at zero speed) where that
+    term is active; as given otherwise."""
+    eff = P["eff"]
+    if "breakaway_friction" not in eff.active:
+        return lo, hi
+    bp, bn = eff.breakaway_friction.excess()
+    return lo - bn, hi + bp
+
+
 def _safe_abs_pow(x, p):
     """|x|**p with finite derivatives in x and p at x = 0 (value 0 there, for p > 0)."""
     ax = jnp.abs(x)
@@ -382,10 +393,11 @@ def _solve_step(P, s_guess, iterations, reversal_quadrature):
     g_star = _G_nofriction(s_star, P)
     zero = jnp.zeros_like(s_star)
     rest = _stage_friction_at_rest if reversal_quadrature else (lambda sign, P: _branch_friction(zero, sign, P))
-    f_pos = rest(1.0, P)  # breakaway, positive direction
+    f_pos = rest(1.0, P)  # eq. 9 at rest, positive direction
     f_neg = rest(-1.0, P)  # (negative number)
-    go_pos = sg(g_star + f_pos < 0)
-    go_neg = sg(g_star + f_neg > 0)
+    b_neg, b_pos = _static_bounds(f_neg, f_pos, P)  # the breakaway torques (`breakaway_friction`)
+    go_pos = sg(g_star + b_pos < 0)
+    go_neg = sg(g_star + b_neg > 0)
     sign = jnp.where(go_pos, 1.0, jnp.where(go_neg, -1.0, 0.0))
     corrected = _stage_friction_on(P) if reversal_quadrature else jnp.zeros((), dtype=bool)
     Pb = dict(P, sign=sign)
@@ -420,7 +432,7 @@ def _solve_step(P, s_guess, iterations, reversal_quadrature):
     # a step through the dip or a reversal; a stuck motor's is the torque that holds it at rest, inside
     # the breakaway interval (not the stage's mean, which includes the impulse that stopped it)
     net = P["drive"] - Tbar / P["N"]
-    hold = jnp.clip(net, _branch_friction(zero, -1.0, P), _branch_friction(zero, 1.0, P))
+    hold = jnp.clip(net, *_static_bounds(_branch_friction(zero, -1.0, P), _branch_friction(zero, 1.0, P), P))
     corr = jnp.where(stuck, net - P["A"] * (wm1 - P["wm_hist"]) - hold, f_used - _branch_friction(wm1, sign, Pb))
     return s, out, stuck, converged, corr
 
@@ -668,7 +680,8 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             F0 = jnp.where(
                 wm0 > 0, _branch_friction(wm0, 1.0, P0),
                 jnp.where(wm0 < 0, _branch_friction(wm0, -1.0, P0),
-                          jnp.clip(hold, _branch_friction(0.0 * wm0, -1.0, P0), _branch_friction(0.0 * wm0, 1.0, P0))),
+                          jnp.clip(hold, *_static_bounds(_branch_friction(0.0 * wm0, -1.0, P0),
+                                                         _branch_friction(0.0 * wm0, 1.0, P0), P0))),
             )
             return (q0, wm0, tho0, wo0, z0, s0, T0, F0)
 

@@ -10,7 +10,7 @@ from .._discrepancy.evidence import covariate_drifts
 from .._discrepancy.loop import NOT_SCREENED, SCREENED_EFFECTS, diagnose
 from .._discrepancy.significance import OUTPUT_ERROR_RULES
 from .._fit.paper import identify_paper
-from .._model.effects import MODEL_FORM_NAMES
+from .._model.effects import DIAGNOSED_MODEL_FORM
 from .._plant.simulate import Simulator
 from .._plant.stepper import VelocityImplicit
 from .artifacts import effects_to_dict
@@ -21,7 +21,7 @@ from .progress import task
 
 DEFAULTS = {
     "candidates": list(SCREENED_EFFECTS),  # SPEC §4 effects screened, one finding per round
-    "model_form": list(MODEL_FORM_NAMES),  # SPEC §4b base-model assumptions screened first
+    "model_form": list(DIAGNOSED_MODEL_FORM),  # SPEC §4b base-model assumptions screened first
     "base_steps": 5,  # LM steps refining the base model
     "max_findings": 3,
     "min_relative_gain": OUTPUT_ERROR_RULES.min_relative_gain,  # held-out (misfit-scaled, whitened) SSE reduction where a finding acts

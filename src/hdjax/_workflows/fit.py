@@ -5,14 +5,15 @@ wrapper around `run_fit`."""
 import pathlib
 import time
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from .._data.experiment import select_experiments, stack_experiments, take_experiments
 from .._data.load import Dataset
-from .._fit.least_squares import DEFAULT_FREE, fit_parameters, fit_per_experiment, nrmse
+from .._fit.least_squares import DEFAULT_FREE, fit_parameters, fit_per_experiment, nrmse, profile_effect_parameters
 from .._fit.paper import identify_paper
-from .._model.effects import Effects, SensorBandwidth
+from .._model.effects import BreakawayFriction, Effects, SensorBandwidth
 from .._model.paper import PARAMETER_NAMES, PARAMETER_UNITS
 from .._plant.rosenbrock import Rodas3
 from .._plant.simulate import PLANT_W_METHOD, Simulator, simulate_batch
@@ -42,6 +43,7 @@ DEFAULTS = {
         "per_experiment_substeps": 2,
         "reversal_quadrature": False,
         "sensor_bandwidth": True,
+        "breakaway_friction": False,
     },
 }
 
@@ -128,9 +130,12 @@ def _options(config: dict) -> dict:
     """The `fit:` section of `config` completed by `DEFAULTS`; an unknown key is an error."""
     opts = section_options(config, "fit", DEFAULTS, nested=("trajectory",))
     per_experiment_simulator(opts["trajectory"])  # a bad solver, substeps or tolerance is refused before any work
-    sb = opts["trajectory"]["sensor_bandwidth"]
-    if not isinstance(sb, bool):
-        raise ValueError(f"config `fit.trajectory.sensor_bandwidth` must be true or false, got {sb!r}.")
+    for key in ("sensor_bandwidth", "breakaway_friction"):
+        if not isinstance(opts["trajectory"][key], bool):
+            raise ValueError(f"config `fit.trajectory.{key}` must be true or false, got {opts['trajectory'][key]!r}.")
+    if opts["trajectory"]["breakaway_friction"] and opts["trajectory"]["solver"] != "velocity_implicit":
+        raise ValueError("config `fit.trajectory.breakaway_friction: true` needs `fit.trajectory.solver: velocity_implicit` "
+                         "(exact sticking); set `breakaway_friction: false` to use an adaptive solver.")
     return opts
 
 
@@ -138,14 +143,40 @@ def _options(config: dict) -> dict:
 #: `sensor_bandwidth`): first-order time constants of the strain gauge and the tachometer, each
 #: on the scale of the sample period, from 0.
 SENSOR_LAGS = ("sensor_bandwidth.torque_lag", "sensor_bandwidth.velocity_lag")
+#: The static-friction excesses the joint fit frees with `fit.trajectory.breakaway_friction`, each
+#: on the scale of a tenth of the paper's Coulomb friction, from 0.
+BREAKAWAY = ("breakaway_friction.excess_p", "breakaway_friction.excess_n")
+#: The grid of the breakaway excesses' search, in units of the paper's mean Coulomb friction
+#: (Tsp + Tsn)/2. The excess is measured from eq. 9 at rest, Ts + Tss1, which a rising friction
+#: (Tss1 < 0) puts below Ts: on the shipped HD2 campaign the negative direction's Ts + Tss1 is
+#: about 0 and its bench breaks away at 1.16·Tsn, 0.75 of the unit; the positive direction's at
+#: 1.30·Tsp, 1.4 of it.
+BREAKAWAY_GRID = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.25, 1.5, 2.0)
 
 
-def sensor_model(trajectory: dict, dt: float) -> tuple[Effects, dict[str, float]]:
-    """The effects the joint fit applies and the effect parameters it frees, from the
-    `fit.trajectory` options: with `sensor_bandwidth` (the default) a first-order lag of the
+def fit_model_form(trajectory: dict, dt: float) -> tuple[Effects, dict[str, float]]:
+    """The model-form terms the joint fit applies and the parameters of them LM frees, from the
+    `fit.trajectory` options (`dt` the sample period, s).
+
+    With `breakaway_friction` (opt-in, default false): static friction above eq. 9's limit at zero
+    speed (`hdjax.BreakawayFriction`; exact sticking, so `velocity_implicit` only), switched on at 0
+    and set after LM by a grid search per direction (`BREAKAWAY_GRID`, `_joint_fit`): it acts
+    through stick/slip events alone, so it has no derivative for LM. Measured 2026-12-06 on the
+    shipped campaigns, whose bench breaks away at 1.16–1.30× its friction level: the breakaway
+    torques (eq. 9 at rest + the excess) within 5 % of the bench's in both directions of both
+    campaigns, reduced χ² 2.63 → 1.91 (HD1) and 7.04 → 5.97 (HD2), K1's consistency on HD1
+    11.9 % → 5.8 % (its locked records where the motor sticks had given 6760–9870 N·m). Why not the
+    default: the per-experiment fits then lose their hold on the Stribeck amplitudes (on HD2 seven
+    of fourteen stayed at the joint value and one went to +0.88 N·m: Tssp1's consistency 46 % →
+    3400 %), since a wider stick band leaves fewer sliding samples for the gradient, and LM
+    restarted with the excesses held accepted no step (`profile_effect_parameters`). With the
+    bench's own excesses held in LM from the start (a probe), HD1's χ² fell to 1.33 and its
+    Stribeck amplitudes came within 6 and 15 %: a joint search would gain more than this one pass.
+
+    With `sensor_bandwidth` (the default) a first-order lag of the
     simulated torque and motor velocity (the strain-gauge amplifier's and the tachometer's
     bandwidth, `hdjax.Effects.sensor_bandwidth`), both lags fitted from 0 on the scale of the
-    sample period `dt` (s); without it no effect.
+    sample period `dt` (s).
 
     Why by default (measured 2026-12-06 on the shipped campaigns, which the independent bench made
     with first-order sensor filters: HD1 strain gauge 473 Hz, tachometer 203 Hz; HD2 576 / 274 Hz):
@@ -153,10 +184,13 @@ def sensor_model(trajectory: dict, dt: float) -> tuple[Effects, dict[str, float]
     softer flexspline. HD1: K1 −3.9 % from the truth at 4.9 of its standard errors, reduced χ²
     23.7; with the filters' true lags K1 +0.02 %, reduced χ² 2.6. HD2: K1 −1.1 % → +0.01 %, Jeff
     +1.3 % → +0.01 %, reduced χ² 30.5 → 7.1."""
-    if not trajectory["sensor_bandwidth"]:
-        return Effects(), {}
-    effects = Effects().with_term(SensorBandwidth())
-    return effects, {path: dt for path in SENSOR_LAGS}
+    effects, free = Effects(), {}
+    if trajectory["sensor_bandwidth"]:
+        effects = effects.with_term(SensorBandwidth())
+        free.update({path: dt for path in SENSOR_LAGS})
+    if trajectory["breakaway_friction"]:
+        effects = effects.with_term(BreakawayFriction())  # set by `profile_effect_parameters`, not by LM
+    return effects, free
 
 
 def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> dict:
@@ -178,7 +212,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     log("[2/4] joint trajectory-error fit (optimistix Levenberg–Marquardt through the simulated plant)")
     sim_fit = trajectory_simulator(opts["trajectory"])
     full = stack_experiments(exps)  # once: the joint fit takes its subset from it
-    res, sel_pos, t_traj = _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log)
+    res, sel_pos, t_traj, profile = _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log)
     per_fit, t_per = _per_experiment_fits(paper, res, drive, full, files, opts, notes, log)
     _lm_notes(res, undetermined, notes)
 
@@ -200,7 +234,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
         "schema": "hdjax.fit/1",
         "dataset": dataset.name,
         "parameters": params_json,
-        "sensor_model": _sensor_json(res, opts["trajectory"]),
+        "model_form": _model_form_json(res, profile),
         "fit": _fit_section(res, overall, per_exp, [files[j] for j in sel_pos]),
         "paper_identification": paper.to_dict(),
         "consistency_note": (
@@ -257,7 +291,8 @@ def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
             f"for the NRMSE figures."
         )
     batch = take_experiments(full, sel_pos)
-    effects, free_effects = sensor_model(opts["trajectory"], _sample_period(full))
+    coulomb = 0.5 * (abs(float(p0.Tsp)) + abs(float(p0.Tsn))) or 0.01  # the breakaway grid's unit (N·m)
+    effects, free_effects = fit_model_form(opts["trajectory"], _sample_period(full))
     t0 = time.time()
     res = fit_parameters(
         p0, drive, batch, free=free_names, simulator=sim_fit, max_steps=int(opts["trajectory"]["max_steps"]),
@@ -265,9 +300,26 @@ def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
         se_block=float(opts["trajectory"]["se_block"]), throw=False,  # a fit that stops short is reported (`_lm_notes`), not an error
         effects=effects, free_effects=free_effects,
     )
+    log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({time.time() - t0:.1f} s)")
+    profile = None
+    if opts["trajectory"]["breakaway_friction"]:
+        # the breakaway torques act through stick/slip events alone (no derivative): a grid search at the
+        # estimate (`profile_effect_parameters`, which says why not LM again); the standard errors and the
+        # parameters stay the LM fit's, the reduced χ² is the one with the breakaway
+        grid = [coulomb * x for x in BREAKAWAY_GRID]
+        found, profile = profile_effect_parameters(res, drive, batch, {path: grid for path in BREAKAWAY}, simulator=sim_fit)
+        chi2 = res.chi2_reduced * profile["sse_end"] / profile["sse_start"]
+        edge = [p.split(".")[1] for p in BREAKAWAY if profile[p]["value"] >= grid[-1]]
+        if edge:
+            notes.append(f"breakaway_friction: {', '.join(edge)} at the top of its search grid "
+                         f"({grid[-1]:.3g} N·m, {BREAKAWAY_GRID[-1]:g}× the mean Coulomb friction): the drive may break "
+                         "away higher still; the value is a lower bound.")
+        res = eqx.tree_at(lambda r: (r.effects, r.chi2_reduced), res, (found, chi2))
+        log(f"      breakaway excess {float(found.breakaway_friction.excess_p):.3g} / "
+            f"{float(found.breakaway_friction.excess_n):.3g} N·m (grid search), reduced chi-square {chi2:.3g} "
+            f"({time.time() - t0:.1f} s)")
     t_traj = time.time() - t0
-    log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({t_traj:.1f} s)")
-    return res, sel_pos, t_traj
+    return res, sel_pos, t_traj, profile
 
 
 def _per_experiment_fits(paper, res, drive, full, files, opts, notes, log):
@@ -404,23 +456,35 @@ def _sample_period(full) -> float:
     return float(np.median(np.diff(t)))
 
 
-def _sensor_json(res, trajectory: dict) -> dict:
-    """fit.json's `sensor_model`: the sensor lags fitted with the parameters (value, standard
-    error, unit), or why there are none."""
-    if not res.free_effects:
-        return {"sensor_bandwidth": None,
-                "note": "not fitted (`fit.trajectory.sensor_bandwidth: false`): the simulated torque and velocity are "
-                        "compared with the recorded ones as they are"}
-    term = res.effects.sensor_bandwidth
-    out = {}
-    for path in res.free_effects:
-        field = path.split(".", 1)[1]
-        out[field] = {"value": float(getattr(term, field)), "unit": "s", "std_error": res.std_error[path],
-                      "std_error_white": res.std_error_white[path]}
-    return {"sensor_bandwidth": out,
-            "note": "first-order time constants of the strain gauge (torque_lag) and the tachometer (velocity_lag), "
-                    "fitted with the parameters (SPEC §4b sensor_bandwidth); the simulated torque and motor velocity "
-                    "pass through them before they are compared with the records (`fit.trajectory.sensor_bandwidth`)"}
+_FORM_NOTES = {
+    "sensor_bandwidth": "first-order time constants of the strain gauge (torque_lag) and the tachometer "
+                        "(velocity_lag): the simulated torque and motor velocity pass through them before they are "
+                        "compared with the records (`fit.trajectory.sensor_bandwidth`)",
+    "breakaway_friction": "static friction above eq. 9's limit at zero speed, per direction (excess_p, excess_n; "
+                          "taken as max(excess, 0)): a motor at rest sticks until the torque holding it exceeds "
+                          "Tsp + Tssp1 + excess_p or Tsn + Tssn1 + excess_n (`fit.trajectory.breakaway_friction`)",
+}
+
+
+def _model_form_json(res, profile: dict | None) -> dict:
+    """fit.json's `model_form`: per term fitted with the parameters (hdjax's base-model adjustments,
+    SPEC §4b's `sensor_bandwidth` and hdjax's `breakaway_friction`) each field's value, unit and
+    standard errors, with a note; empty when the fit used none. A field set by a grid search
+    (`profile`) has no standard error (its derivative is zero) and carries its grid and whitened
+    squared errors instead."""
+    out: dict[str, dict] = {}
+    for path in list(res.free_effects) + [k for k in (profile or {}) if "." in k]:
+        name, field = path.split(".", 1)
+        term = res.effects.term(name)
+        entry = out.setdefault(name, {"note": _FORM_NOTES.get(name, "")})
+        if profile and path in profile:
+            entry[field] = {"value": float(getattr(term, field)), "unit": term.units[field], "std_error": None,
+                            "method": "grid search of the whitened squared error (stick/slip events: no derivative)",
+                            "grid": profile[path]["grid"], "sse": profile[path]["sse"]}
+        else:
+            entry[field] = {"value": float(getattr(term, field)), "unit": term.units[field],
+                            "std_error": res.std_error[path], "std_error_white": res.std_error_white[path]}
+    return out
 
 
 def _finite_or_none(v):
@@ -428,6 +492,11 @@ def _finite_or_none(v):
         return None
     v = float(v)
     return v if np.isfinite(v) else None
+
+
+def _num(v, scale: float = 1e3) -> str:
+    """A standard error for the report: `v`·`scale` to 3 digits, "—" when not finite."""
+    return "—" if v is None or not np.isfinite(v) else f"{scale * v:.3g}"
 
 
 def _fmt(v):
@@ -465,10 +534,16 @@ def _report(r: dict, truth) -> str:
         lines.append(f"- {ch}: {v:.4f}")
     lines.append(f"- reduced chi-square (noise-weighted): {r['fit']['chi2_reduced']:.3g}; LM steps {r['fit']['lm_steps']}, "
                  f"converged: {r['fit']['converged']}")
-    sb = (r.get("sensor_model") or {}).get("sensor_bandwidth")
-    if sb:
-        lags = ", ".join(f"{k.replace('_', ' ')} {1e3 * e['value']:.3f} ± {1e3 * e['std_error']:.3f} ms" for k, e in sb.items())
+    form = r.get("model_form") or {}
+    if form.get("sensor_bandwidth"):
+        lags = ", ".join(f"{k.replace('_', ' ')} {1e3 * e['value']:.3f} ± {_num(e['std_error'])} ms"
+                         for k, e in form["sensor_bandwidth"].items() if k != "note")
         lines.append(f"- sensor bandwidth fitted with the parameters (first-order lags of the simulated outputs): {lags}")
+    if form.get("breakaway_friction"):
+        ex = ", ".join(f"{k.replace('_', ' ')} {e['value']:.4g} N·m" for k, e in form["breakaway_friction"].items()
+                       if k != "note")
+        lines.append(f"- static friction above eq. 9's at rest (a grid search after the fit; stick/slip events give no "
+                     f"derivative, so no standard error): {ex}")
     if r["fit"].get("std_error_method") == "block_sandwich":
         lines.append(f"- std errors: robust to a misfit correlated over {r['fit']['std_error_block_s']:g} s (block sandwich); the white-noise "
                      "Gauss–Newton ones are in fit.json (`std_error_white`) and are smaller where the model is not exact")
