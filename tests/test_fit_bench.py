@@ -31,8 +31,16 @@ import jax
 import numpy as np
 import pytest
 
-from hdjax import Effects, Parameters, fit_parameters, friction_torque, identify_paper, load_dataset, stack_experiments
-from hdjax._model.effects import SensorBandwidth
+from hdjax import (
+    Effects,
+    Parameters,
+    SensorBandwidth,
+    fit_parameters,
+    friction_torque,
+    identify_paper,
+    load_dataset,
+    stack_experiments,
+)
 from hdjax.bench import make_dataset
 
 jax.config.update("jax_enable_x64", True)
@@ -148,9 +156,7 @@ def test_breakaway_search_finds_the_bench_breakaway_torques(drive, seed, tmp_pat
     bench's breakaway torque in each direction, where eq. 9 alone is 34–85 % below it, and the
     whitened squared error must fall (measured 2026-12-06: −7.2 / −6.5 % on HD2 seed 11, −12.6 /
     −0.6 % on HD1 seed 12; squared error −16 %, −16 %)."""
-    from hdjax import Simulator, VelocityImplicit
-    from hdjax._fit.least_squares import profile_effect_parameters
-    from hdjax._model.effects import BreakawayFriction
+    from hdjax import BreakawayFriction, Simulator, VelocityImplicit, profile_effect_parameters
     from hdjax._workflows.fit import BREAKAWAY_GRID
 
     truth = make_dataset(tmp_path / "ds", drive=drive, seed=seed, n_locked=2, n_free=2, duration=1.0)

@@ -55,8 +55,10 @@ from ._fit.least_squares import (
     fit_noise_levels as fit_noise_levels,
     fit_parameters as fit_parameters,
     fit_per_experiment as fit_per_experiment,
+    make_effect_map as make_effect_map,
     make_parameter_map as make_parameter_map,
     noise_levels as noise_levels,
+    profile_effect_parameters as profile_effect_parameters,
 )
 from ._fit.lm import MarquardtLM as MarquardtLM
 from ._fit.paper import PAPER_HD2_SI as PAPER_HD2_SI, PaperIdentification as PaperIdentification, identify_paper as identify_paper
@@ -67,6 +69,7 @@ from ._model.effects import (
     TERMS as TERMS,
     AbstractPeriodicTerm as AbstractPeriodicTerm,
     AbstractTerm as AbstractTerm,
+    BreakawayFriction as BreakawayFriction,
     Cogging as Cogging,
     Effects as Effects,
     InputBetweenSamples as InputBetweenSamples,
