@@ -95,7 +95,7 @@ def make_effect_map(effects: Effects, free_effects: Mapping[str, float] | None) 
     paths, scales, starts = [], [], []
     for path, scale in free_effects.items():
         name, _, field = path.partition(".")
-        if name not in TERMS or field not in {f.name for f in dataclasses.fields(TERMS[name])}:
+        if name not in TERMS or field not in TERMS[name].parameter_names():
             raise ValueError(f"`fit_parameters`: unknown effect parameter {path!r} in `free_effects`; give "
                              "'<term>.<field>', e.g. 'sensor_bandwidth.torque_lag'.")
         if name not in effects.active:
@@ -604,9 +604,9 @@ def profile_effect_parameters(
     Tsp and Tssp1 as well, and the cost is discontinuous in them), and restarted from the paper's
     estimates it ended at a higher cost.
 
-    **Returns:** the effects with the chosen values, and per path `{"value", "grid", "sse"}` (the
-    whitened squared error at each grid value), plus `"sse_start"` and `"sse_end"` (at `fit.effects`
-    and at the chosen values).
+    **Returns:** the effects with the chosen values, and a report: `"paths"`, per path `{"value",
+    "grid", "sse"}` (the whitened squared error at each grid value), and `"sse_start"`, `"sse_end"`
+    (at `fit.effects` and at the chosen values).
     """
     effects = fit.effects
     sigma = jnp.asarray(fit.sigma)
@@ -614,13 +614,16 @@ def profile_effect_parameters(
     if mesh is not None:
         batch, _ = shard_experiments(batch, mesh)
     run = _cached(_sse_program, simulator, mesh)
-    report: dict = {"sse_start": float(run(fit.params, effects, drive, batch, sigma))}
+    make_effect_map(effects, dict.fromkeys(grids, 1.0))  # every path names an active term's scalar field
+    report: dict = {"sse_start": float(run(fit.params, effects, drive, batch, sigma)), "paths": {}}
     for path, grid in grids.items():
-        emap = make_effect_map(effects, {path: 1.0})
-        assert emap is not None
+        name, field = path.split(".", 1)
+
+        def at(v, name=name, field=field):
+            return effects.with_values(name, **{field: v})
+
         grid = np.asarray(list(grid), dtype=float)
-        sse = np.array([float(run(fit.params, emap.to_model(jnp.asarray([v - float(emap.offset[0])]), effects), drive, batch, sigma))
-                        for v in grid])
+        sse = np.array([float(run(fit.params, at(v), drive, batch, sigma)) for v in grid])
         k = int(np.argmin(sse))
         best = float(grid[k])
         if 0 < k < len(grid) - 1:  # the vertex of the parabola through the best and its neighbours
@@ -630,8 +633,8 @@ def profile_effect_parameters(
             b = (x[2] ** 2 * (y[0] - y[1]) + x[1] ** 2 * (y[2] - y[0]) + x[0] ** 2 * (y[1] - y[2])) / den
             if a > 0:
                 best = float(np.clip(-b / (2 * a), x[0], x[2]))
-        effects = emap.to_model(jnp.asarray([best - float(emap.offset[0])]), effects)
-        report[path] = {"value": best, "grid": grid.tolist(), "sse": sse.tolist()}
+        effects = at(best)
+        report["paths"][path] = {"value": best, "grid": grid.tolist(), "sse": sse.tolist()}
     report["sse_end"] = float(run(fit.params, effects, drive, batch, sigma))
     return effects, report
 
@@ -642,13 +645,7 @@ def _sse_program(simulator, mesh):
 
     @eqx.filter_jit
     def run(p, eff, drive_, batch_, sigma_):
-        def per_device(shared, b):
-            p_, eff_, d_, s_ = shared
-            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator, eff_), b,
-                                       fixed_cost=is_fixed_cost(simulator))
-
-        r = map_experiments(per_device, mesh)((p, eff, drive_, sigma_), batch_)
-        return jnp.sum(r**2)
+        return jnp.sum(_batch_residuals(p, eff, drive_, batch_, sigma_, simulator, mesh) ** 2)
 
     return run
 
@@ -930,6 +927,18 @@ def _stepped_least_squares(fn, solver: optx.AbstractLeastSquaresSolver, *, max_s
     return run
 
 
+def _batch_residuals(p, effects, drive, batch, sigma, simulator, mesh):
+    """Whitened residuals (experiment, channel, time) of every experiment of `batch` under (`p`,
+    `effects`), each device of `mesh` (None: one) taking its share of the experiments."""
+
+    def per_device(shared, b):
+        p_, eff_, d_, s_ = shared
+        return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator, eff_), b,
+                                   fixed_cost=is_fixed_cost(simulator))
+
+    return map_experiments(per_device, mesh)((p, effects, drive, sigma), batch)
+
+
 @functools.lru_cache(maxsize=32)
 def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh):
     """The compiled joint fit: `run(theta0, (pmap, p0, emap, effects, drive, batch, sigma), on_step=None)` → (θ,
@@ -940,14 +949,7 @@ def _joint_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rto
     def residuals(theta, args):
         pmap, p0_, emap, e0, drive_, batch_, sigma_ = args
         p, eff = _models(theta, pmap, p0_, emap, e0)
-
-        def per_experiment(shared, b):
-            p_, eff_, d_, s_ = shared
-            return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator, eff_), b,
-                                       fixed_cost=is_fixed_cost(simulator))
-
-        r = map_experiments(per_experiment, mesh)((p, eff, drive_, sigma_), batch_)
-        return r.reshape(-1)
+        return _batch_residuals(p, eff, drive_, batch_, sigma_, simulator, mesh).reshape(-1)
 
     def finish(theta, state, result, num_steps, args):
         r, J = _state_residual_and_jacobian(state)

@@ -143,8 +143,8 @@ def _options(config: dict) -> dict:
 #: `sensor_bandwidth`): first-order time constants of the strain gauge and the tachometer, each
 #: on the scale of the sample period, from 0.
 SENSOR_LAGS = ("sensor_bandwidth.torque_lag", "sensor_bandwidth.velocity_lag")
-#: The static-friction excesses the joint fit frees with `fit.trajectory.breakaway_friction`, each
-#: on the scale of a tenth of the paper's Coulomb friction, from 0.
+#: The static-friction excesses `fit.trajectory.breakaway_friction` sets by a grid search after LM
+#: (`BREAKAWAY_GRID`), each from 0.
 BREAKAWAY = ("breakaway_friction.excess_p", "breakaway_friction.excess_n")
 #: The grid of the breakaway excesses' search, in units of the paper's mean Coulomb friction
 #: (Tsp + Tsn)/2. The excess is measured from eq. 9 at rest, Ts + Tss1, which a rising friction
@@ -291,7 +291,6 @@ def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
             f"for the NRMSE figures."
         )
     batch = take_experiments(full, sel_pos)
-    coulomb = 0.5 * (abs(float(p0.Tsp)) + abs(float(p0.Tsn))) or 0.01  # the breakaway grid's unit (N·m)
     effects, free_effects = fit_model_form(opts["trajectory"], _sample_period(full))
     t0 = time.time()
     res = fit_parameters(
@@ -306,10 +305,11 @@ def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
         # the breakaway torques act through stick/slip events alone (no derivative): a grid search at the
         # estimate (`profile_effect_parameters`, which says why not LM again); the standard errors and the
         # parameters stay the LM fit's, the reduced χ² is the one with the breakaway
+        coulomb = 0.5 * (abs(float(p0.Tsp)) + abs(float(p0.Tsn))) or 0.01  # the grid's unit (N·m)
         grid = [coulomb * x for x in BREAKAWAY_GRID]
         found, profile = profile_effect_parameters(res, drive, batch, {path: grid for path in BREAKAWAY}, simulator=sim_fit)
         chi2 = res.chi2_reduced * profile["sse_end"] / profile["sse_start"]
-        edge = [p.split(".")[1] for p in BREAKAWAY if profile[p]["value"] >= grid[-1]]
+        edge = [p.split(".")[1] for p in BREAKAWAY if profile["paths"][p]["value"] >= grid[-1]]
         if edge:
             notes.append(f"breakaway_friction: {', '.join(edge)} at the top of its search grid "
                          f"({grid[-1]:.3g} N·m, {BREAKAWAY_GRID[-1]:g}× the mean Coulomb friction): the drive may break "
@@ -473,14 +473,15 @@ def _model_form_json(res, profile: dict | None) -> dict:
     (`profile`) has no standard error (its derivative is zero) and carries its grid and whitened
     squared errors instead."""
     out: dict[str, dict] = {}
-    for path in list(res.free_effects) + [k for k in (profile or {}) if "." in k]:
+    searched = profile["paths"] if profile else {}
+    for path in list(res.free_effects) + list(searched):
         name, field = path.split(".", 1)
         term = res.effects.term(name)
         entry = out.setdefault(name, {"note": _FORM_NOTES.get(name, "")})
-        if profile and path in profile:
+        if path in searched:
             entry[field] = {"value": float(getattr(term, field)), "unit": term.units[field], "std_error": None,
                             "method": "grid search of the whitened squared error (stick/slip events: no derivative)",
-                            "grid": profile[path]["grid"], "sse": profile[path]["sse"]}
+                            "grid": searched[path]["grid"], "sse": searched[path]["sse"]}
         else:
             entry[field] = {"value": float(getattr(term, field)), "unit": term.units[field],
                             "std_error": res.std_error[path], "std_error_white": res.std_error_white[path]}
@@ -494,9 +495,9 @@ def _finite_or_none(v):
     return v if np.isfinite(v) else None
 
 
-def _num(v, scale: float = 1e3) -> str:
-    """A standard error for the report: `v`·`scale` to 3 digits, "—" when not finite."""
-    return "—" if v is None or not np.isfinite(v) else f"{scale * v:.3g}"
+def _ms(v) -> str:
+    """A time's standard error (s) for the report in ms to 3 digits, "—" when not finite."""
+    return "—" if v is None or not np.isfinite(v) else f"{1e3 * v:.3g}"
 
 
 def _fmt(v):
@@ -536,7 +537,7 @@ def _report(r: dict, truth) -> str:
                  f"converged: {r['fit']['converged']}")
     form = r.get("model_form") or {}
     if form.get("sensor_bandwidth"):
-        lags = ", ".join(f"{k.replace('_', ' ')} {1e3 * e['value']:.3f} ± {_num(e['std_error'])} ms"
+        lags = ", ".join(f"{k.replace('_', ' ')} {1e3 * e['value']:.3f} ± {_ms(e['std_error'])} ms"
                          for k, e in form["sensor_bandwidth"].items() if k != "note")
         lines.append(f"- sensor bandwidth fitted with the parameters (first-order lags of the simulated outputs): {lags}")
     if form.get("breakaway_friction"):
