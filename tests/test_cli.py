@@ -217,17 +217,18 @@ def test_fit_trajectory_solver_option_builds_the_named_simulator():
 def test_fit_sensor_bandwidth_option_frees_both_sensor_lags():
     """`fit.trajectory.sensor_bandwidth` (default true) makes the joint fit apply a first-order lag
     to the simulated torque and motor velocity and fit both time constants from 0 on the scale of
-    the sample period; `breakaway_friction` (opt-in) switches the static-friction excesses on
-    at 0 for the grid search after LM (not freed in LM: no derivative), and needs the fixed-step
-    solver; false fits none; anything but true or false names its key."""
+    the sample period; `breakaway_friction` (default true) switches the breakaway torques on at 0
+    for `fit_breakaway_friction`'s grid search (not freed in LM: no derivative) and needs the
+    fixed-step solver: set true with an adaptive one it is refused, left to its default it is off
+    (and `run_fit` says so); false fits none; anything but true or false names its key."""
     from hdjax._workflows.fit import DEFAULTS, SENSOR_LAGS, _options, fit_model_form
 
     opts = dict(DEFAULTS["trajectory"])
-    assert opts["sensor_bandwidth"] is True and opts["breakaway_friction"] is False
-    effects, free = fit_model_form({**opts, "breakaway_friction": True}, 1e-3)
+    assert opts["sensor_bandwidth"] is True and opts["breakaway_friction"] is True
+    effects, free = fit_model_form(opts, 1e-3)
     assert effects.active == {"sensor_bandwidth", "breakaway_friction"} and free == {path: 1e-3 for path in SENSOR_LAGS}
     assert float(effects.sensor_bandwidth.torque_lag) == float(effects.sensor_bandwidth.velocity_lag) == 0.0
-    assert float(effects.breakaway_friction.excess_p) == float(effects.breakaway_friction.excess_n) == 0.0
+    assert float(effects.breakaway_friction.breakaway_p) == float(effects.breakaway_friction.breakaway_n) == 0.0
     effects, free = fit_model_form({**opts, "sensor_bandwidth": False, "breakaway_friction": False}, 1e-3)
     assert not effects.active and free == {}
     for key in ("sensor_bandwidth", "breakaway_friction"):
@@ -235,6 +236,8 @@ def test_fit_sensor_bandwidth_option_frees_both_sensor_lags():
             _options({"fit": {"trajectory": {key: "on"}}})
     with pytest.raises(ValueError, match=r"breakaway_friction: true.*velocity_implicit"):
         _options({"fit": {"trajectory": {"solver": "rodas3", "breakaway_friction": True}}})
+    assert _options({"fit": {"trajectory": {"solver": "rodas3"}}})["trajectory"]["breakaway_friction"] is False
+    assert _options({})["trajectory"]["breakaway_friction"] is True
 
 
 def test_freed_effect_parameters_are_checked_before_any_work():

@@ -150,14 +150,11 @@ def test_fitted_sensor_lags_match_the_bench_filters_and_lower_the_misfit(fits, d
 def test_breakaway_search_finds_the_bench_breakaway_torques(drive, seed, tmp_path):
     """The bench's motor sticks until the holding torque leaves [−B_n, B_p], its breakaway torques
     1.1–1.3× the friction level, above eq. 9's limit at rest (its own stick–slip code). After the
-    fit (fixed-step exact plant, sensor lags freed), `profile_effect_parameters` sets
-    `breakaway_friction`'s excess per direction by a grid search (`hdjax fit`'s
-    `fit.trajectory.breakaway_friction`): eq. 9 at rest plus the excess must come within 15 % of the
-    bench's breakaway torque in each direction, where eq. 9 alone is 34–85 % below it, and the
-    whitened squared error must fall (measured 2026-12-06: −7.2 / −6.5 % on HD2 seed 11, −12.6 /
-    −0.6 % on HD1 seed 12; squared error −16 %, −16 %)."""
-    from hdjax import BreakawayFriction, Simulator, VelocityImplicit, profile_effect_parameters
-    from hdjax._workflows.fit import BREAKAWAY_GRID
+    fit (fixed-step exact plant, sensor lags freed), `fit_breakaway_friction` (`hdjax fit`'s
+    `fit.trajectory.breakaway_friction`: grid search, LM with the torques held, search again) must
+    put each direction's breakaway torque within 15 % of the bench's, where eq. 9 at rest alone is
+    34–85 % below it, and lower the reduced χ²."""
+    from hdjax import BreakawayFriction, Simulator, VelocityImplicit, fit_breakaway_friction
 
     truth = make_dataset(tmp_path / "ds", drive=drive, seed=seed, n_locked=2, n_free=2, duration=1.0)
     ds = load_dataset(tmp_path / "ds")
@@ -166,16 +163,18 @@ def test_breakaway_search_finds_the_bench_breakaway_torques(drive, seed, tmp_pat
     dt = float(np.median(np.diff(np.asarray(exps[0].time))))
     sim = Simulator(solver=VelocityImplicit(substeps=4))
     batch = stack_experiments(exps)
+    lags = {"sensor_bandwidth.torque_lag": dt, "sensor_bandwidth.velocity_lag": dt}
     fit = fit_parameters(start, ds.drive, batch, max_steps=20, simulator=sim,
-                         effects=Effects().with_term(SensorBandwidth()).with_term(BreakawayFriction()),
-                         free_effects={"sensor_bandwidth.torque_lag": dt, "sensor_bandwidth.velocity_lag": dt})
-    unit = 0.5 * (float(start.Tsp) + float(start.Tsn))
-    grid = {f"breakaway_friction.excess_{d}": [unit * x for x in BREAKAWAY_GRID] for d in "pn"}
-    found, report = profile_effect_parameters(fit, ds.drive, batch, grid, simulator=sim)
-    excess = [float(x) for x in found.breakaway_friction.excess()]
+                         effects=Effects().with_term(SensorBandwidth()).with_term(BreakawayFriction()), free_effects=lags)
+    with pytest.raises(ValueError, match="free_effects"):
+        fit_breakaway_friction(fit, ds.drive, batch, simulator=sim)
+    out, report = fit_breakaway_friction(fit, ds.drive, batch, simulator=sim, free_effects=lags, max_steps=20)
+    found = out.effects.breakaway_friction
+    got = float(found.breakaway_p), float(found.breakaway_n)
     at_rest = float(fit.params.Tsp + fit.params.Tssp1), float(fit.params.Tsn + fit.params.Tssn1)
     bench = truth["low_speed"]["breakaway_torque"]["p"], truth["low_speed"]["breakaway_torque"]["n"]
     for d in range(2):
-        assert abs((at_rest[d] + excess[d]) / bench[d] - 1) < 0.15, (d, at_rest[d], excess[d], bench[d])
-        assert abs((at_rest[d] + excess[d]) / bench[d] - 1) < abs(at_rest[d] / bench[d] - 1)
-    assert report["sse_end"] < report["sse_start"]
+        assert abs(got[d] / bench[d] - 1) < 0.15, (d, got[d], at_rest[d], bench[d])
+        assert abs(got[d] / bench[d] - 1) < abs(at_rest[d] / bench[d] - 1)
+    assert report["sse_end"] <= report["sse_start"] and out.chi2_reduced < fit.chi2_reduced, (out.chi2_reduced, fit.chi2_reduced)
+    assert out.free_effects == fit.free_effects and out.steps >= fit.steps

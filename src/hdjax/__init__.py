@@ -48,10 +48,12 @@ from ._fit.friction import (
     rms_stats as rms_stats,
 )
 from ._fit.least_squares import (
+    BREAKAWAY_GRID as BREAKAWAY_GRID,
     DEFAULT_FREE as DEFAULT_FREE,
     POSITIVE as POSITIVE,
     CostStop as CostStop,
     experiment_residuals as experiment_residuals,
+    fit_breakaway_friction as fit_breakaway_friction,
     fit_noise_levels as fit_noise_levels,
     fit_parameters as fit_parameters,
     fit_per_experiment as fit_per_experiment,

@@ -122,14 +122,13 @@ ROOT_RTOL = 1e-7
 
 
 def _static_bounds(lo, hi, P):
-    """The stick interval [lo, hi] (N·m) of eq. 9's friction at rest, widened by
-    `breakaway_friction`'s excesses (static friction above eq. 9's limit at zero speed) where that
-    term is active; as given otherwise."""
+    """The stick interval [lo, hi] (N·m) of eq. 9's friction at rest, widened to
+    `breakaway_friction`'s breakaway torques (static friction above eq. 9's limit at zero speed)
+    where that term is active; as given otherwise."""
     eff = P["eff"]
     if "breakaway_friction" not in eff.active:
         return lo, hi
-    bp, bn = eff.breakaway_friction.excess()
-    return lo - bn, hi + bp
+    return eff.breakaway_friction.stick_band(lo, hi)
 
 
 def _safe_abs_pow(x, p):

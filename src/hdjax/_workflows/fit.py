@@ -5,13 +5,20 @@ wrapper around `run_fit`."""
 import pathlib
 import time
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from .._data.experiment import select_experiments, stack_experiments, take_experiments
 from .._data.load import Dataset
-from .._fit.least_squares import DEFAULT_FREE, fit_parameters, fit_per_experiment, nrmse, profile_effect_parameters
+from .._fit.least_squares import (
+    BREAKAWAY_GRID,
+    BREAKAWAY_PATHS,
+    DEFAULT_FREE,
+    fit_breakaway_friction,
+    fit_parameters,
+    fit_per_experiment,
+    nrmse,
+)
 from .._fit.paper import identify_paper
 from .._model.effects import BreakawayFriction, Effects, SensorBandwidth
 from .._model.paper import PARAMETER_NAMES, PARAMETER_UNITS
@@ -43,7 +50,7 @@ DEFAULTS = {
         "per_experiment_substeps": 2,
         "reversal_quadrature": False,
         "sensor_bandwidth": True,
-        "breakaway_friction": False,
+        "breakaway_friction": True,
     },
 }
 
@@ -134,44 +141,45 @@ def _options(config: dict) -> dict:
         if not isinstance(opts["trajectory"][key], bool):
             raise ValueError(f"config `fit.trajectory.{key}` must be true or false, got {opts['trajectory'][key]!r}.")
     if opts["trajectory"]["breakaway_friction"] and opts["trajectory"]["solver"] != "velocity_implicit":
-        raise ValueError("config `fit.trajectory.breakaway_friction: true` needs `fit.trajectory.solver: velocity_implicit` "
-                         "(exact sticking); set `breakaway_friction: false` to use an adaptive solver.")
+        if _breakaway_given(config):
+            raise ValueError("config `fit.trajectory.breakaway_friction: true` needs `fit.trajectory.solver: velocity_implicit` "
+                             "(exact sticking); set `breakaway_friction: false` to use an adaptive solver.")
+        opts["trajectory"]["breakaway_friction"] = False  # the default, with an adaptive solver: `run_fit` notes it
     return opts
+
+
+def _breakaway_given(config: dict | None) -> bool:
+    """Whether `config` sets `fit.trajectory.breakaway_friction` itself (not by the default)."""
+    return "breakaway_friction" in ((((config or {}).get("fit") or {}).get("trajectory")) or {})
 
 
 #: The sensor lags the joint fit frees with `fit.trajectory.sensor_bandwidth` (SPEC §4b
 #: `sensor_bandwidth`): first-order time constants of the strain gauge and the tachometer, each
 #: on the scale of the sample period, from 0.
 SENSOR_LAGS = ("sensor_bandwidth.torque_lag", "sensor_bandwidth.velocity_lag")
-#: The static-friction excesses `fit.trajectory.breakaway_friction` sets by a grid search after LM
-#: (`BREAKAWAY_GRID`), each from 0.
-BREAKAWAY = ("breakaway_friction.excess_p", "breakaway_friction.excess_n")
-#: The grid of the breakaway excesses' search, in units of the paper's mean Coulomb friction
-#: (Tsp + Tsn)/2. The excess is measured from eq. 9 at rest, Ts + Tss1, which a rising friction
-#: (Tss1 < 0) puts below Ts: on the shipped HD2 campaign the negative direction's Ts + Tss1 is
-#: about 0 and its bench breaks away at 1.16·Tsn, 0.75 of the unit; the positive direction's at
-#: 1.30·Tsp, 1.4 of it.
-BREAKAWAY_GRID = (0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.25, 1.5, 2.0)
 
 
 def fit_model_form(trajectory: dict, dt: float) -> tuple[Effects, dict[str, float]]:
     """The model-form terms the joint fit applies and the parameters of them LM frees, from the
     `fit.trajectory` options (`dt` the sample period, s).
 
-    With `breakaway_friction` (opt-in, default false): static friction above eq. 9's limit at zero
-    speed (`hdjax.BreakawayFriction`; exact sticking, so `velocity_implicit` only), switched on at 0
-    and set after LM by a grid search per direction (`BREAKAWAY_GRID`, `_joint_fit`): it acts
-    through stick/slip events alone, so it has no derivative for LM. Measured 2026-12-06 on the
-    shipped campaigns, whose bench breaks away at 1.16–1.30× its friction level: the breakaway
-    torques (eq. 9 at rest + the excess) within 5 % of the bench's in both directions of both
-    campaigns, reduced χ² 2.63 → 1.91 (HD1) and 7.04 → 5.97 (HD2), K1's consistency on HD1
-    11.9 % → 5.8 % (its locked records where the motor sticks had given 6760–9870 N·m). Why not the
-    default: the per-experiment fits then lose their hold on the Stribeck amplitudes (on HD2 seven
-    of fourteen stayed at the joint value and one went to +0.88 N·m: Tssp1's consistency 46 % →
-    3400 %), since a wider stick band leaves fewer sliding samples for the gradient, and LM
-    restarted with the excesses held accepted no step (`profile_effect_parameters`). With the
-    bench's own excesses held in LM from the start (a probe), HD1's χ² fell to 1.33 and its
-    Stribeck amplitudes came within 6 and 15 %: a joint search would gain more than this one pass.
+    With `breakaway_friction` (the default with the `velocity_implicit` solver): static friction
+    above eq. 9's limit at zero speed (`hdjax.BreakawayFriction`, a breakaway torque per direction;
+    exact sticking, so `velocity_implicit` only), switched on at 0 and set by
+    `hdjax.fit_breakaway_friction` after the first LM fit: a grid search, LM again with the torques
+    held, the search again. It acts through stick/slip events alone, so it has no derivative for LM.
+
+    Why by default (measured 2026-12-06, shipped campaigns, whose independent bench breaks away at
+    1.1–1.3× its friction level, as real drives stick): the breakaway torques came within 2.5 % (HD1)
+    and 5 % (HD2) of the bench's; reduced χ² 2.63 → 1.34 (HD1) and 7.04 → 5.5 (HD2); HD1's K1
+    consistency 11.9 → 1.8 % (its locked records where the motor sticks had given K1 of 6760–9870
+    N·m against 6630–6930 on the others) and its Stribeck amplitudes −69 / −2 % → −22 / +17 % from the
+    bench's. What it costs: about 10–14 s of the command (two grid searches of 32 simulations and
+    the second LM fit), and on HD2 the per-experiment Stribeck estimates scatter more (Tssp1's
+    consistency 61 → 374 %: with the motor held to a higher torque, a slow record has fewer sliding
+    samples). As an excess over eq. 9's value at rest (the first design, 2026-12-06) the stick
+    events moved with the Stribeck amplitudes and LM could not move them (HD2 Tssp1 consistency
+    3400 %).
 
     With `sensor_bandwidth` (the default) a first-order lag of the
     simulated torque and motor velocity (the strain-gauge amplifier's and the tachometer's
@@ -208,6 +216,9 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     notes += paper.notes
     p0 = paper.parameters()
     free_names, undetermined = _free_and_undetermined(opts, modes, paper)
+    if opts["trajectory"]["solver"] != "velocity_implicit" and not _breakaway_given(config):
+        notes.append(f"breakaway_friction (on by default) is off: the adaptive solver {opts['trajectory']['solver']!r} "
+                     "smooths friction at rest and cannot stick exactly (`fit.trajectory.solver: velocity_implicit`).")
 
     log("[2/4] joint trajectory-error fit (optimistix Levenberg–Marquardt through the simulated plant)")
     sim_fit = trajectory_simulator(opts["trajectory"])
@@ -302,22 +313,18 @@ def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
     log(f"      {res.steps} LM steps, stopped on {res.stop_reason}, reduced chi-square {res.chi2_reduced:.3g} ({time.time() - t0:.1f} s)")
     profile = None
     if opts["trajectory"]["breakaway_friction"]:
-        # the breakaway torques act through stick/slip events alone (no derivative): a grid search at the
-        # estimate (`profile_effect_parameters`, which says why not LM again); the standard errors and the
-        # parameters stay the LM fit's, the reduced χ² is the one with the breakaway
-        coulomb = 0.5 * (abs(float(p0.Tsp)) + abs(float(p0.Tsn))) or 0.01  # the grid's unit (N·m)
-        grid = [coulomb * x for x in BREAKAWAY_GRID]
-        found, profile = profile_effect_parameters(res, drive, batch, {path: grid for path in BREAKAWAY}, simulator=sim_fit)
-        chi2 = res.chi2_reduced * profile["sse_end"] / profile["sse_start"]
-        edge = [p.split(".")[1] for p in BREAKAWAY if profile["paths"][p]["value"] >= grid[-1]]
+        # stick/slip events give LM no derivative: grid search, LM with the torques held, search again
+        res, profile = fit_breakaway_friction(
+            res, drive, batch, simulator=sim_fit, free_effects=free_effects, max_steps=int(opts["trajectory"]["max_steps"]),
+            cost_rtol=float(opts["trajectory"]["cost_rtol"]), step_se_tol=float(opts["trajectory"]["step_se_tol"]))
+        edge = [p.split(".")[1] for p in BREAKAWAY_PATHS if profile["paths"][p]["value"] >= profile["paths"][p]["grid"][-1]]
         if edge:
             notes.append(f"breakaway_friction: {', '.join(edge)} at the top of its search grid "
-                         f"({grid[-1]:.3g} N·m, {BREAKAWAY_GRID[-1]:g}× the mean Coulomb friction): the drive may break "
+                         f"({BREAKAWAY_GRID[-1]:g}× the direction's Coulomb friction): the drive may break "
                          "away higher still; the value is a lower bound.")
-        res = eqx.tree_at(lambda r: (r.effects, r.chi2_reduced), res, (found, chi2))
-        log(f"      breakaway excess {float(found.breakaway_friction.excess_p):.3g} / "
-            f"{float(found.breakaway_friction.excess_n):.3g} N·m (grid search), reduced chi-square {chi2:.3g} "
-            f"({time.time() - t0:.1f} s)")
+        log(f"      breakaway torques {float(res.effects.breakaway_friction.breakaway_p):.3g} / "
+            f"{float(res.effects.breakaway_friction.breakaway_n):.3g} N·m (grid search, then {profile['lm_steps']} LM "
+            f"steps with them held), reduced chi-square {res.chi2_reduced:.3g} ({time.time() - t0:.1f} s)")
     t_traj = time.time() - t0
     return res, sel_pos, t_traj, profile
 
@@ -460,9 +467,9 @@ _FORM_NOTES = {
     "sensor_bandwidth": "first-order time constants of the strain gauge (torque_lag) and the tachometer "
                         "(velocity_lag): the simulated torque and motor velocity pass through them before they are "
                         "compared with the records (`fit.trajectory.sensor_bandwidth`)",
-    "breakaway_friction": "static friction above eq. 9's limit at zero speed, per direction (excess_p, excess_n; "
-                          "taken as max(excess, 0)): a motor at rest sticks until the torque holding it exceeds "
-                          "Tsp + Tssp1 + excess_p or Tsn + Tssn1 + excess_n (`fit.trajectory.breakaway_friction`)",
+    "breakaway_friction": "static friction above eq. 9's limit at zero speed, per direction (breakaway_p, breakaway_n; "
+                          "magnitudes, N·m): a motor at rest sticks until the torque holding it exceeds "
+                          "max(Tsp + Tssp1, breakaway_p) or max(Tsn + Tssn1, breakaway_n) (`fit.trajectory.breakaway_friction`)",
 }
 
 
@@ -543,8 +550,8 @@ def _report(r: dict, truth) -> str:
     if form.get("breakaway_friction"):
         ex = ", ".join(f"{k.replace('_', ' ')} {e['value']:.4g} N·m" for k, e in form["breakaway_friction"].items()
                        if k != "note")
-        lines.append(f"- static friction above eq. 9's at rest (a grid search after the fit; stick/slip events give no "
-                     f"derivative, so no standard error): {ex}")
+        lines.append(f"- breakaway torques, static friction above eq. 9's at rest (a grid search, then LM again with them "
+                     f"held; stick/slip events give no derivative, so no standard error): {ex}")
     if r["fit"].get("std_error_method") == "block_sandwich":
         lines.append(f"- std errors: robust to a misfit correlated over {r['fit']['std_error_block_s']:g} s (block sandwich); the white-noise "
                      "Gauss–Newton ones are in fit.json (`std_error_white`) and are smaller where the model is not exact")
