@@ -178,3 +178,8 @@ def test_breakaway_search_finds_the_bench_breakaway_torques(drive, seed, tmp_pat
         assert abs(got[d] / bench[d] - 1) < abs(at_rest[d] / bench[d] - 1)
     assert report["sse_end"] <= report["sse_start"] and out.chi2_reduced < fit.chi2_reduced, (out.chi2_reduced, fit.chi2_reduced)
     assert out.free_effects == fit.free_effects and out.steps >= fit.steps
+    # the search's lanes (one vmapped program per grid) give the squared error of one plain evaluation
+    # at the same values: a one-point grid at the found torques reproduces the report's end value
+    from hdjax import profile_effect_parameters
+    _, one = profile_effect_parameters(out, ds.drive, batch, {"breakaway_friction.breakaway_p": [got[0]]}, simulator=sim)
+    np.testing.assert_allclose(one["paths"]["breakaway_friction.breakaway_p"]["sse"][0], one["sse_start"], rtol=1e-10)

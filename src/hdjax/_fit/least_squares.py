@@ -597,7 +597,8 @@ def profile_effect_parameters(
     `fit.effects`, whose term must be active) is evaluated at every value of its grid with the
     other parameters at `fit`'s estimate (and the paths before it at their chosen values); the
     best value is refined by the parabola through it and its two neighbours where it lies inside the
-    grid. One compiled program evaluates every point (the values are arguments).
+    grid. One compiled program evaluates a path's whole grid at once (`vmap` over the grid values,
+    which are arguments), each device taking its share of the experiments.
 
     `fit_breakaway_friction` alternates it with LM for the breakaway torques.
 
@@ -611,16 +612,22 @@ def profile_effect_parameters(
     if mesh is not None:
         batch, _ = shard_experiments(batch, mesh)
     run = _cached(_sse_program, simulator, mesh)
+    paths = tuple(grids)
+    lanes = _cached(_sse_lanes_program, simulator, paths, mesh)
     make_effect_map(effects, dict.fromkeys(grids, 1.0))  # every path names an active term's scalar field
     report: dict = {"sse_start": float(run(fit.params, effects, drive, batch, sigma)), "paths": {}}
-    for path, grid in grids.items():
+    for i, (path, grid) in enumerate(grids.items()):
         name, field = path.split(".", 1)
 
         def at(v, name=name, field=field):
             return effects.with_values(name, **{field: v})
 
         grid = np.asarray(list(grid), dtype=float)
-        sse = np.array([float(run(fit.params, at(v), drive, batch, sigma)) for v in grid])
+        # one lane per grid value: every path at its current value, path i running over its grid
+        now = np.array([float(getattr(effects.term(q.split(".", 1)[0]), q.split(".", 1)[1])) for q in paths])
+        values = np.repeat(now[None, :], len(grid), axis=0)
+        values[:, i] = grid
+        sse = np.asarray(lanes(fit.params, effects, drive, batch, sigma, jnp.asarray(values)), dtype=float)
         k = int(np.argmin(sse))
         best = float(grid[k])
         if 0 < k < len(grid) - 1:  # the vertex of the parabola through the best and its neighbours
@@ -712,6 +719,36 @@ def _sse_program(simulator, mesh):
     @eqx.filter_jit
     def run(p, eff, drive_, batch_, sigma_):
         return jnp.sum(_batch_residuals(p, eff, drive_, batch_, sigma_, simulator, mesh) ** 2)
+
+    return run
+
+
+@functools.lru_cache(maxsize=8)
+def _sse_lanes_program(simulator, paths, mesh):
+    """The compiled whitened squared error of a batch at many values of the effect parameters
+    `paths` (dotted): `run(p, effects, drive, batch, sigma, values)` with `values` (lane, path) →
+    (lane,); each device of `mesh` (None: one) takes its share of the experiments and `vmap`s
+    the lanes over them."""
+
+    def at(eff, row):
+        for j, path in enumerate(paths):
+            name, field = path.split(".", 1)
+            eff = eff.with_values(name, **{field: row[j]})
+        return eff
+
+    def per_device(shared, b):
+        p_, eff_, d_, s_, values = shared
+
+        def lane(row):
+            r = for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator, at(eff_, row)), b,
+                                    fixed_cost=is_fixed_cost(simulator))
+            return jnp.sum(r.reshape(r.shape[0], -1) ** 2, axis=1)  # (experiment,)
+
+        return jax.vmap(lane, out_axes=1)(values)  # (experiment, lane)
+
+    @eqx.filter_jit
+    def run(p, eff, drive_, batch_, sigma_, values):
+        return jnp.sum(map_experiments(per_device, mesh)((p, eff, drive_, sigma_, values), batch_), axis=0)
 
     return run
 
