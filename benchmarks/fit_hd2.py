@@ -37,6 +37,9 @@ for field, key in (("torque_lag", "torque_filter_hz"), ("velocity_lag", "tacho_f
         true = f", the bench's filter {1e3 / (2 * math.pi * float(dev[key])):.4f} ms" if dev.get(key) else ""
         print(f"{field}: {1e3 * e['value']:.4f} ± {1e3 * e['std_error']:.4f} ms{true}")
 print("chi2_reduced", d["fit"]["chi2_reduced"])
+truth_low = ((yaml.safe_load((dataset / "truth.yaml").read_text()) or {}).get("low_speed") or {}) if (dataset / "truth.yaml").exists() else {}
 for field, e in ((d.get("model_form") or {}).get("breakaway_friction") or {}).items():
     if field != "note":
-        print(f"breakaway {field}: {e['value']:.4g} N·m (grid search)")
+        b = (truth_low.get("breakaway_torque") or {}).get(field.rsplit("_", 1)[-1])
+        true = f", the bench's {float(b):.4g} N·m ({100 * (e['value'] / float(b) - 1):+.1f} %)" if b else ""
+        print(f"breakaway {field}: {e['value']:.4g} N·m (grid search){true}")
