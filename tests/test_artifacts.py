@@ -33,6 +33,29 @@ def test_fit_json_is_read_with_its_consistency_and_noise_levels(tmp_path):
     doc["parameters"]["K1"]["std_error"] = 9.2
     path.write_text(json.dumps(doc))
     assert read_fit_json(path, setting="config `tune.fit`").std_error["K1"] == 9.2
+    assert fit.effects.active == frozenset()  # no model_form: no terms
+
+
+def test_the_fit_json_model_form_is_read_as_effects(tmp_path):
+    """`model_form` (the sensor lags, the breakaway torques fitted with the parameters) comes back as
+    the `Effects` that `tune` and `sensitivity` simulate with, and a broken entry is named."""
+    p, _ = hd2()
+    form = {"sensor_bandwidth": {"note": "lags", "torque_lag": {"value": 2.5e-4, "unit": "s", "std_error": 3e-5},
+                                 "velocity_lag": {"value": 5.9e-4, "unit": "s", "std_error": 8e-6}},
+            "breakaway_friction": {"note": "torques", "breakaway_p": {"value": 0.102, "std_error": None, "grid": [0.0, 0.1]},
+                                   "breakaway_n": {"value": 0.045, "std_error": None}}}
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps(_fit_doc(p, model_form=form)))
+    eff = read_fit_json(path, setting="config `tune.fit`").effects
+    assert eff.active == {"sensor_bandwidth", "breakaway_friction"}
+    assert float(eff.breakaway_friction.breakaway_p) == 0.102 and float(eff.breakaway_friction.breakaway_n) == 0.045
+    assert float(eff.sensor_bandwidth.velocity_lag) == 5.9e-4
+    left = eff.without("sensor_bandwidth")
+    assert left.active == {"breakaway_friction"} and float(left.sensor_bandwidth.torque_lag) == 0.0
+    form["breakaway_friction"]["breakaway_n"] = {"std_error": None}  # no value
+    path.write_text(json.dumps(_fit_doc(p, model_form=form)))
+    with pytest.raises(ValueError, match=r"model_form\.breakaway_friction.*python -m hdjax.fit"):
+        read_fit_json(path, setting="config `tune.fit`")
 
 
 @pytest.mark.parametrize("break_it, field", [

@@ -230,3 +230,33 @@ def test_tune_moves_a_presliding_model_to_the_smoothed_plant_and_says_so():
     assert opts["solver"] == "rodas3" and "presliding_friction" in notes[0]
     assert _plant_solver(dict(_options({})), Effects(), [], print)["solver"] == "velocity_implicit"
     assert _plant_solver(dict(_options({"tune": {"solver": "rodas3"}})), eff, [], print)["solver"] == "rodas3"
+
+
+def test_tune_keeps_the_fitted_breakaway_torques_and_says_what_it_leaves_out():
+    """`tune` simulates the loop with the terms the fit fitted (fit.json's `model_form`): the
+    breakaway torques stay on the exact plant; the sensor lags (not modelled in the loop) and, on
+    the smoothed plant, the breakaway torques are left out with a note each."""
+    from hdjax import BreakawayFriction, SensorBandwidth
+    from hdjax._workflows.tune import _tuning_effects
+
+    eff = Effects().with_term(SensorBandwidth(torque_lag=2.5e-4, velocity_lag=5.9e-4)).with_term(
+        BreakawayFriction(breakaway_p=0.1, breakaway_n=0.09))
+    notes = []
+    kept = _tuning_effects(eff, "velocity_implicit", notes, lambda *_: None)
+    assert kept.active == {"breakaway_friction"} and len(notes) == 1 and "sensor lags" in notes[0]
+    notes = []
+    assert _tuning_effects(eff, "rodas3", notes, lambda *_: None).active == frozenset() and len(notes) == 2
+    assert "breakaway" in notes[1] and "velocity_implicit" in notes[1]
+    # and the loop feels them: a motor at rest under a small held torque demand stays stuck longer
+    # with breakaway torques above eq. 9's at rest (the plain plant breaks away at Tsp + Tssp1)
+    plant, ctrl = _setup()
+    p = plant.parameters
+    stuck = Plant(p, plant.drive, Effects().with_term(BreakawayFriction(
+        breakaway_p=3.0 * float(p.Tsp + p.Tssp1), breakaway_n=3.0 * float(p.Tsn + p.Tssn1))))
+    ref = step_reference(float(p.Tsp) * float(plant.drive.gear_ratio) * 0.5, duration=0.05)
+    g = TorqueGains(kp=0.3, ki=100.0)
+    free_run = closed_loop(g, plant, ref, controller=ctrl)
+    held_run = closed_loop(g, stuck, ref, controller=ctrl)
+    at_rest = [int(np.sum(np.abs(np.asarray(r.motor_velocity)) < 1e-9)) for r in (free_run, held_run)]
+    print("samples at rest, plain and with breakaway:", at_rest)
+    assert at_rest[1] > at_rest[0]

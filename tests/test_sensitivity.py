@@ -123,6 +123,14 @@ def test_workflow_writes_sensitivity_json(tiny_dataset, tmp_path):
     assert d2["parameters"]["K1"] == pytest.approx(float(p.K1))
     # truth parameters on noisy data simulated from them: the residual is noise (chi2 near 1)
     assert d2["identifiability"]["chi2_per_channel"]["motor_velocity"] < 2.0
+    # the terms the fit fitted with the parameters (fit.json's model_form) are simulated with them:
+    # a 20 ms tachometer lag the data do not have must show in the velocity channel's misfit
+    fit.write_text(json.dumps({"dataset": "tiny", "parameters": {k: {"value": v} for k, v in p.to_dict().items()},
+                               "model_form": {"sensor_bandwidth": {"torque_lag": {"value": 0.0},
+                                                                   "velocity_lag": {"value": 0.02}}}}))
+    d3 = run_sensitivity(ds, {"sensitivity": {"fit_json": str(fit)}}, tmp_path / "out3", log=None)
+    assert d3["parameter_source"]["effects"]["sensor_bandwidth"]["velocity_lag"] == pytest.approx(0.02)
+    assert d3["identifiability"]["chi2_per_channel"]["motor_velocity"] > 5 * d2["identifiability"]["chi2_per_channel"]["motor_velocity"]
 
 
 def test_bad_option_is_refused(tiny_dataset, tmp_path):

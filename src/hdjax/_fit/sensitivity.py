@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._data.experiment import Experiment, take_experiments
+from .._model.effects import Effects
 from .._model.paper import PARAMETER_NAMES, Drive, Parameters
 from .._plant.sharding import for_each_experiment
 from .._plant.simulate import Simulator, Trajectory, is_fixed_cost, simulate
@@ -109,9 +110,9 @@ class Sensitivities(eqx.Module):
     num_steps: jax.Array
 
 
-def _sensitivity_one(p: Parameters, drive: Drive, exp: Experiment, simulator: Simulator):
+def _sensitivity_one(p: Parameters, drive: Drive, exp: Experiment, simulator: Simulator, effects: Effects):
     def f(s):
-        tr = simulate(scaled_parameters(p, s), drive, exp, simulator=simulator)
+        tr = simulate(scaled_parameters(p, s), drive, exp, simulator=simulator, effects=effects)
         y = jnp.stack([tr.torque, tr.motor_velocity, tr.output_position])
         return y, (y, tr.success, tr.num_steps)
 
@@ -120,29 +121,36 @@ def _sensitivity_one(p: Parameters, drive: Drive, exp: Experiment, simulator: Si
 
 
 @eqx.filter_jit
-def _sensitivities_jit(p, drive, batch, simulator):
+def _sensitivities_jit(p, drive, batch, simulator, effects):
     # data enter as arguments, never as closed-over constants (which XLA would try to fold)
-    return for_each_experiment(lambda e: _sensitivity_one(p, drive, e, simulator), batch,
+    return for_each_experiment(lambda e: _sensitivity_one(p, drive, e, simulator, effects), batch,
                                fixed_cost=is_fixed_cost(simulator))
 
 
-def sensitivities(p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator = Simulator()) -> Sensitivities:
+def sensitivities(p: Parameters, drive: Drive, batch: Experiment, *, simulator: Simulator = Simulator(),
+                  effects: Effects = Effects()) -> Sensitivities:
     """Forward-mode sensitivities ∂y/∂ln|p| of all channels of a stacked batch
     (`hdjax.stack_experiments`), by `jax.jacfwd` through the diffrax solve, `vmap`ped over the
-    experiments. `simulator.adjoint` must support forward mode (the default `ForwardMode()`)."""
-    return _sensitivities_jit(p, drive, batch, simulator)
+    experiments, the plant carrying `effects` (held). `simulator.adjoint` must support forward mode
+    (the default `ForwardMode()`)."""
+    return _sensitivities_jit(p, drive, batch, simulator, effects)
 
 
 @eqx.filter_jit
-def _simulate_lanes_jit(P, drive, lanes, simulator):
-    return for_each_experiment(lambda q, e: simulate(q, drive, e, simulator=simulator), P, lanes,
+def _simulate_lanes_jit(P, drive, lanes, simulator, E):
+    return for_each_experiment(lambda q, f, e: simulate(q, drive, e, simulator=simulator, effects=f), P, E, lanes,
                                fixed_cost=is_fixed_cost(simulator))
 
 
-def simulate_lanes(P: Parameters, drive: Drive, lanes: Experiment, *, simulator: Simulator = Simulator()) -> Trajectory:
+def simulate_lanes(P: Parameters, drive: Drive, lanes: Experiment, *, simulator: Simulator = Simulator(),
+                   effects: Effects = Effects()) -> Trajectory:
     """Simulate lane `i` of a stacked batch `lanes` with parameter set `i` of the stacked `P` (each
-    `Parameters` leaf with a leading lane axis): many parameter sets in one `vmap`."""
-    return _simulate_lanes_jit(P, drive, lanes, simulator)
+    `Parameters` leaf with a leading lane axis), the plant carrying `effects`: many parameter sets in
+    one `vmap`."""
+    n = int(np.shape(lanes.time)[0])
+    arrays, static = eqx.partition(effects, eqx.is_array)
+    E = eqx.combine(jax.tree.map(lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x))), arrays), static)
+    return _simulate_lanes_jit(P, drive, lanes, simulator, E)
 
 
 def _rigid_body_projector(t: np.ndarray) -> np.ndarray:
@@ -331,7 +339,7 @@ def _rms(a, b):
     return float(np.sqrt(np.mean((np.asarray(a) - np.asarray(b)) ** 2)))
 
 
-def ablation_study(p, drive, batch, sens, ok, modes, files, opts, simulator):
+def ablation_study(p, drive, batch, sens, ok, modes, files, opts, simulator, effects=Effects()):
     n = len(modes)
     lanes_idx = []
     for a, (key, _, mode, change) in enumerate(ABLATIONS):
@@ -344,7 +352,12 @@ def ablation_study(p, drive, batch, sens, ok, modes, files, opts, simulator):
     P = jax.tree.map(lambda *x: jnp.stack(x), *[sets[a] for a, _ in lanes_idx])
     idx = np.array([j for _, j in lanes_idx])
     lanes = take_experiments(batch, idx)
-    tr = jax.block_until_ready(simulate_lanes(P, drive, lanes, simulator=simulator))
+    # "Coulomb = 0" takes the breakaway torques (static dry friction above eq. 9's) with it: 0 = none
+    dry_off = effects.with_values("breakaway_friction", breakaway_p=0.0, breakaway_n=0.0) \
+        if "breakaway_friction" in effects.active else effects
+    per_lane = [dry_off if ABLATIONS[a][0] == "coulomb_zero" else effects for a, _ in lanes_idx]
+    E = jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *per_lane)
+    tr = jax.block_until_ready(_simulate_lanes_jit(P, drive, lanes, simulator, E))
     succ = np.asarray(tr.success)
     mask = np.asarray(batch.mask)
     y_c = np.asarray(sens.outputs)

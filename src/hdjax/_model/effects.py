@@ -685,6 +685,12 @@ class Effects(eqx.Module):
         new = eqx.tree_at(lambda e: getattr(e, term.name), self, term)
         return dataclasses.replace(new, active=frozenset(self.active | {term.name}))
 
+    def without(self, name: str) -> "Effects":
+        """A copy with effect `name` switched off, its term back at its defaults."""
+        self.term(name)  # a known name
+        new = eqx.tree_at(lambda e: getattr(e, name), self, TERMS[name]())
+        return dataclasses.replace(new, active=frozenset(self.active - {name}))
+
     def with_periodic(self, name: str, order: int, amplitude: float, phase: float = 0.0) -> "Effects":
         """A copy with `a·sin(k·θm + φ)` added to effect `name` at order `k`, and the effect switched on."""
         return self.with_term(self._periodic_term(name).with_order(order, amplitude, phase))

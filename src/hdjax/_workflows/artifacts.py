@@ -26,7 +26,9 @@ class FitFile:
     name its `consistency` (std/|mean| of the per-experiment estimates, or None) and
     `per_experiment` estimates (list, or None); `noise_levels` (channel → σ) of the fit, possibly
     empty; the `dataset` name it was fitted on; `std_error` per parameter name (its unit; None
-    where not fitted), empty when the file has none."""
+    where not fitted), empty when the file has none; `effects`, the terms the fit fitted with the
+    parameters (`model_form`: the sensor lags, the breakaway torques), `Effects()` when it has
+    none."""
 
     path: pathlib.Path
     dataset: str | None
@@ -35,6 +37,7 @@ class FitFile:
     per_experiment: dict
     noise_levels: dict
     std_error: dict = dataclasses.field(default_factory=dict)
+    effects: Effects = dataclasses.field(default_factory=Effects)
 
 
 def fit_json_dataset(path) -> str | None:
@@ -64,7 +67,23 @@ def read_fit_json(path, *, setting: str) -> FitFile:
     return FitFile(path, d.get("dataset"), Parameters.from_dict(values),
                    {k: e.get("consistency") for k, e in entries.items()},
                    {k: e.get("per_experiment") for k, e in entries.items()}, dict(noise),
-                   {k: e.get("std_error") for k, e in entries.items()})
+                   {k: e.get("std_error") for k, e in entries.items()}, _model_form_effects(d, path, fix))
+
+
+def _model_form_effects(d: dict, path: pathlib.Path, fix: str) -> Effects:
+    """The `Effects` of a fit.json's `model_form` (`{term: {"note": ..., field: {"value": ...}}}`)."""
+    effects = Effects()
+    for name, entry in (d.get("model_form") or {}).items():
+        try:
+            values = {f: float(e["value"]) for f, e in entry.items() if f != "note"}
+            bad = [f for f, v in values.items() if not math.isfinite(v)]
+            if bad:
+                raise ValueError(f"not finite: {bad}")
+            effects = effects.with_values(name, **values)
+        except (ValueError, KeyError, TypeError, AttributeError) as e:
+            raise ValueError(f"{path}: `model_form.{name}` is not usable ({type(e).__name__}: {e}); it needs "
+                             f"`model_form.{name}.<field>.value` for the term's fields. {fix}") from None
+    return effects
 
 
 def read_extended_model(path) -> tuple[Parameters, Effects]:

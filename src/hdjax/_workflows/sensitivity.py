@@ -27,6 +27,7 @@ from .._fit.sensitivity import (
     typical_experiments,
     weighted_jacobians,
 )
+from .._model.effects import Effects
 from .._model.paper import PARAMETER_NAMES, PARAMETER_UNITS
 from .._plant.simulate import Simulator
 from .._plant.stepper import VelocityImplicit
@@ -96,7 +97,8 @@ def workflow_simulator(opts: dict) -> Simulator:
 
 def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: dict, exps, log):
     """(Parameters, source dict, consistency, per-experiment estimates, paper identification or None,
-    the fit's standard errors by name (empty without a fit.json))."""
+    the fit's standard errors by name (empty without a fit.json), the terms fitted with the
+    parameters (fit.json's `model_form`; `Effects()` without a fit.json))."""
     candidates = []
     if opts.get("fit_json"):
         p = pathlib.Path(opts["fit_json"]).expanduser()
@@ -115,7 +117,8 @@ def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: d
             log(f"      ignoring {path}: it belongs to dataset {name!r}, not {dataset.name!r}")
             continue
         fit = read_fit_json(path, setting="config `sensitivity.fit_json` / `--fit`")
-        return fit.parameters, {"kind": "fit.json", "path": str(path)}, fit.consistency, fit.per_experiment, None, fit.std_error
+        return (fit.parameters, {"kind": "fit.json", "path": str(path)}, fit.consistency, fit.per_experiment, None,
+                fit.std_error, fit.effects)
     from .._fit.paper import identify_paper
     from .fit import _options as fit_options
 
@@ -128,7 +131,7 @@ def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: d
         "folder); the paper's regressions (section III) were run instead of the slow trajectory fit",
         "undetermined": paper.undetermined(),
     }
-    return paper.parameters(), src, dict(paper.consistency), dict(paper.per_experiment), paper, {}
+    return paper.parameters(), src, dict(paper.consistency), dict(paper.per_experiment), paper, {}, Effects()
 
 
 def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
@@ -144,9 +147,18 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
 
     log("[1/5] parameters")
     t0 = time.time()
-    p, source, consistency, per_exp_est, paper, fit_se = _parameter_source(dataset, config, out, opts, exps, log)
+    p, source, consistency, per_exp_est, paper, fit_se, effects = _parameter_source(dataset, config, out, opts, exps, log)
     timing["parameters"] = time.time() - t0
     log(f"      from {source['kind']}" + (f" ({source['path']})" if "path" in source else ""))
+    if opts["solver"] != "velocity_implicit" and "breakaway_friction" in effects.active:
+        effects = effects.without("breakaway_friction")
+        note = (f"the fit's breakaway torques are left out: the {opts['solver']} plant has no exact sticking "
+                f"(`sensitivity.solver: velocity_implicit` keeps them)")
+        notes.append(note)
+        log(f"      note: {note}")
+    if effects.active:
+        source["effects"] = effects.to_dict()
+        log(f"      with the terms fitted with them, held: {', '.join(sorted(effects.active))}")
 
     sel, files, modes, batch = _selection(exps, files_all, modes_all, opts, notes)
     sigma = np.asarray(noise_levels(stack_experiments(exps)))
@@ -154,7 +166,7 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
 
     log(f"[2/5] sensitivities ∂y/∂ln p: jacfwd through the solve, vmap over {len(sel)} experiments × {len(PARAMETER_NAMES)} parameters")
     t0 = time.time()
-    sens = jax.block_until_ready(sensitivities(p, drive, batch, simulator=simulator))
+    sens = jax.block_until_ready(sensitivities(p, drive, batch, simulator=simulator, effects=effects))
     timing["sensitivities"] = time.time() - t0
     ok = _simulations_ok(sens, files, opts, notes)
     Js, rs, blocks = weighted_jacobians(sens.S, sens.outputs, batch, sigma)
@@ -174,7 +186,7 @@ def run_sensitivity(dataset: Dataset, config: dict, out, *, log=print) -> dict:
 
     log("[4/5] the paper's section V study (complete vs Coulomb = 0, viscous = 0, K1/10, Tst = 0)")
     t0 = time.time()
-    ablation, abl_traj = ablation_study(p, drive, batch, sens, ok, modes, files, opts, simulator)
+    ablation, abl_traj = ablation_study(p, drive, batch, sens, ok, modes, files, opts, simulator, effects)
     timing["ablations"] = time.time() - t0
 
     log("[5/5] experiment-design advice, report and figures")

@@ -162,7 +162,7 @@ def _identified(dataset: Dataset, config: dict, opts: dict, out: pathlib.Path, l
         per = {k: v or [] for k, v in fit.per_experiment.items()}
         nl = fit.noise_levels
         source = f"fit.json at {path}"
-        effects = Effects()
+        effects = fit.effects  # the terms fitted with the parameters (`_tuning_effects` keeps what the loop models)
         ext = path.parent / "extended_model.json"
         if ext.is_file():
             p_ext, effects = read_extended_model(ext)
@@ -369,6 +369,24 @@ def _plant_solver(opts: dict, effects: Effects, notes: list, log) -> dict:
     return opts
 
 
+def _tuning_effects(effects: Effects, solver: str, notes: list, log) -> Effects:
+    """The identified `effects` less what the closed-loop plant does not model, each left out with a
+    note: `sensor_bandwidth` (the fit's sensor lags: the loop measures the plant's torque and
+    velocity at the sample instants, unfiltered), and `breakaway_friction` on the smoothed `rodas3`
+    plant (breakaway needs the exact plant's set-valued sticking)."""
+    drop = {"sensor_bandwidth": "the fitted sensor lags are not modelled in the closed loop (it measures the plant's "
+                                "torque and velocity unfiltered at the sample instants)"}
+    if solver != "velocity_implicit":
+        drop["breakaway_friction"] = (f"the fitted breakaway torques are left out: the {solver} plant has no exact "
+                                      f"sticking (`tune.solver: velocity_implicit` keeps them)")
+    for name, why in drop.items():
+        if name in effects.active:
+            effects = effects.without(name)
+            notes.append(why)
+            log(f"  note: {why}")
+    return effects
+
+
 def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> dict:
     """Run the whole tuning workflow on `dataset` and write outputs into `out`. Returns tune.json."""
     t_start = time.time()
@@ -381,6 +399,7 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     log("[1/6] identified plant")
     nominal, effects, per, sigma, source = _identified(dataset, config, opts, out, log)
     opts = _plant_solver(opts, effects, notes, log)
+    effects = _tuning_effects(effects, opts["solver"], notes, log)
     ts, ilim, ctrl = _controller(exps, nominal, drive, opts, notes)
     df = ctrl.derivative_filter
 
