@@ -117,7 +117,8 @@ def _parameter_source(dataset: Dataset, config: dict, out: pathlib.Path, opts: d
             log(f"      ignoring {path}: it belongs to dataset {name!r}, not {dataset.name!r}")
             continue
         fit = read_fit_json(path, setting="config `sensitivity.fit_json` / `--fit`")
-        return (fit.parameters, {"kind": "fit.json", "path": str(path)}, fit.consistency, fit.per_experiment, None,
+        source: dict = {"kind": "fit.json", "path": str(path)}
+        return (fit.parameters, source, fit.consistency, fit.per_experiment, None,
                 fit.std_error, fit.effects)
     from .._fit.paper import identify_paper
     from .fit import _options as fit_options
