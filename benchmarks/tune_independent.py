@@ -19,7 +19,11 @@ to the reference's motor velocity (kf = 0, kfr = 1), the controller structure th
 validated on the same bench runs. It is not one of the issue's baselines; it shows how much of the
 improvement over the model-based PI comes from that structure and how much from tuning.
 
-Usage: `python benchmarks/tune_independent.py [--n 10] [--first 0] [--json FILE] [--tune-solver rodas3]`.
+`--no-breakaway` tunes without the fit's breakaway torques (`tune.breakaway_friction: false`; the fit
+still fits them).
+
+Usage: `python benchmarks/tune_independent.py [--n 10] [--first 0] [--json FILE] [--tune-solver rodas3]
+[--no-breakaway]`.
 """
 
 import argparse
@@ -58,6 +62,8 @@ def main() -> int:
     ap.add_argument("--json", type=str, default=None)
     ap.add_argument("--tune-solver", default=None, choices=("velocity_implicit", "rodas3"),
                     help="plant of the tuning model (`tune.solver`; default: the package's, velocity_implicit)")
+    ap.add_argument("--no-breakaway", action="store_true",
+                    help="tune without the fit's breakaway torques (`tune.breakaway_friction: false`)")
     ap.add_argument("--keep", type=str, default=None, help="folder to keep the datasets and outputs in")
     a = ap.parse_args()
     root = pathlib.Path(a.keep or tempfile.mkdtemp(prefix="tune_independent_"))
@@ -78,7 +84,10 @@ def main() -> int:
         run_fit(ds, cfg, d / "out", log=quiet)
         t_fit = time.time() - t0
         t0 = time.time()
-        r = run_tune(ds, {"tune": {} if a.tune_solver is None else {"solver": a.tune_solver}}, d / "out", log=quiet)
+        tune_cfg = {} if a.tune_solver is None else {"solver": a.tune_solver}
+        if a.no_breakaway:
+            tune_cfg["breakaway_friction"] = False
+        r = run_tune(ds, {"tune": tune_cfg}, d / "out", log=quiet)
         t_tune = time.time() - t0
         v = r["validation"]
         assert v["on"] == "bench", v["on"]

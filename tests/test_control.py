@@ -247,6 +247,9 @@ def test_tune_keeps_the_fitted_breakaway_torques_and_says_what_it_leaves_out():
     notes = []
     assert _tuning_effects(eff, "rodas3", notes, lambda *_: None).active == frozenset() and len(notes) == 2
     assert "breakaway" in notes[1] and "velocity_implicit" in notes[1]
+    notes = []
+    off = _tuning_effects(eff, "velocity_implicit", notes, lambda *_: None, breakaway=False)
+    assert off.active == frozenset() and "tune.breakaway_friction: false" in notes[1]
     # and the loop feels them: a motor at rest under a small held torque demand stays stuck longer
     # with breakaway torques above eq. 9's at rest (the plain plant breaks away at Tsp + Tssp1)
     plant, ctrl = _setup()
