@@ -380,3 +380,27 @@ def test_a_bad_tune_number_is_refused_before_any_work(tmp_path, capsys, key, val
     assert _cli.main(["tune", str(cfg), "--out", str(tmp_path / "out")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "out" / "tune.json").exists()
+
+
+def test_breakaway_summary_gives_the_sticking_limit_and_the_torques_the_data_allow():
+    """fit.json's breakaway entry: a searched torque at or below eq. 9's friction at rest
+    (Ts + Tss1) changes nothing, so `effective` is that friction; `consistent_range` brackets the
+    run of grid values within the reduced χ² of the best (a plateau where the records hold no stick
+    event in that direction; one point where they pin it). Profiles shaped as two of the tuning
+    benchmark's HD2 drives gave (2026-12-06)."""
+    from types import SimpleNamespace
+
+    from hdjax._workflows.fit import breakaway_summary
+
+    p = SimpleNamespace(Tsp=0.0797, Tssp1=0.0120, Tsn=0.0322, Tssn1=-0.0379)
+    grid = [0.0, 0.064, 0.072, 0.080, 0.084, 0.088, 0.092, 0.096, 0.100]
+    plateau = [79032.3] * 7 + [83247.4, 818540.6]  # flat up to 0.092, then rising
+    s = breakaway_summary(p, "breakaway_p", 0.0, grid, plateau, chi2_reduced=5.0)
+    assert s["at_rest_eq9"] == pytest.approx(0.0917) and s["effective"] == pytest.approx(0.0917)
+    assert s["consistent_range"] == pytest.approx([0.0917, 0.096])
+    v = [30737.4, 30497.7, 29831.9, 26064.3, 18764.8, 6101.3, 0.0, 4049.5, 55755.4]  # a V at 0.092
+    s = breakaway_summary(p, "breakaway_n", 0.092, grid, v, chi2_reduced=5.0)
+    assert s["at_rest_eq9"] == pytest.approx(-0.0057) and s["effective"] == 0.092
+    assert s["consistent_range"] == [0.088, 0.096]
+    s = breakaway_summary(p, "breakaway_n", 0.092, grid, [x / 1e3 for x in v], chi2_reduced=5.0)  # shallower: wider
+    assert s["consistent_range"] == [0.088, 0.100]

@@ -322,9 +322,11 @@ def _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log):
             notes.append(f"breakaway_friction: {', '.join(edge)} at the top of its search grid "
                          f"({BREAKAWAY_GRID[-1]:g}× the direction's Coulomb friction): the drive may break "
                          "away higher still; the value is a lower bound.")
-        log(f"      breakaway torques {float(res.effects.breakaway_friction.breakaway_p):.3g} / "
-            f"{float(res.effects.breakaway_friction.breakaway_n):.3g} N·m (grid search, then {profile['lm_steps']} LM "
-            f"steps with them held), reduced chi-square {res.chi2_reduced:.3g} ({time.time() - t0:.1f} s)")
+        sticks = [max(float(getattr(res.effects.breakaway_friction, f"breakaway_{d}")),
+                      float(getattr(res.params, f"Ts{d}")) + float(getattr(res.params, f"Tss{d}1"))) for d in "pn"]
+        log(f"      breakaway torques {sticks[0]:.3g} / {sticks[1]:.3g} N·m (grid search, then {profile['lm_steps']} LM "
+            f"steps with them held; at least eq. 9's friction at rest), reduced chi-square {res.chi2_reduced:.3g} "
+            f"({time.time() - t0:.1f} s)")
     t_traj = time.time() - t0
     return res, sel_pos, t_traj, profile
 
@@ -489,10 +491,39 @@ def _model_form_json(res, profile: dict | None) -> dict:
             entry[field] = {"value": float(getattr(term, field)), "unit": term.units[field], "std_error": None,
                             "method": "grid search of the whitened squared error (stick/slip events: no derivative)",
                             "grid": searched[path]["grid"], "sse": searched[path]["sse"]}
+            if name == "breakaway_friction":
+                entry[field].update(breakaway_summary(res.params, field, float(getattr(term, field)),
+                                                      searched[path]["grid"], searched[path]["sse"],
+                                                      float(res.chi2_reduced)))
         else:
             entry[field] = {"value": float(getattr(term, field)), "unit": term.units[field],
                             "std_error": res.std_error[path], "std_error_white": res.std_error_white[path]}
     return out
+
+
+def breakaway_summary(params, field: str, value: float, grid, sse, chi2_reduced: float) -> dict:
+    """What a searched breakaway torque means for the model (fit.json's `model_form.breakaway_friction`).
+
+    A motor at rest sticks until the holding torque exceeds max(Ts + Tss1, breakaway) in that
+    direction, so a torque at or below eq. 9's friction at rest (`at_rest_eq9`, N·m) changes
+    nothing: `effective` is the limit the model sticks to. `consistent_range` brackets the torques
+    the data do not tell apart from the best: the grid values next to the run of values whose
+    whitened squared error is within `chi2_reduced` of the minimum (Δχ² = 1 scaled by the fit's
+    reduced χ², as the standard errors are for misfit), or the grid's ends, as effective torques.
+    A wide range says the records hold few stick events in that direction."""
+    ts, tss = ("Tsp", "Tssp1") if field.endswith("_p") else ("Tsn", "Tssn1")
+    rest = float(getattr(params, ts)) + float(getattr(params, tss))
+    g, e = np.asarray(grid, dtype=float), np.asarray(sse, dtype=float)
+    k = int(np.argmin(e))
+    near = e - e[k] <= max(float(chi2_reduced), 1.0)
+    lo, hi = k, k
+    while lo > 0 and near[lo - 1]:
+        lo -= 1
+    while hi < len(g) - 1 and near[hi + 1]:
+        hi += 1
+    lo, hi = max(lo - 1, 0), min(hi + 1, len(g) - 1)
+    return {"at_rest_eq9": rest, "effective": max(value, rest),
+            "consistent_range": [max(float(g[lo]), rest), max(float(g[hi]), rest)]}
 
 
 def _finite_or_none(v):
@@ -511,6 +542,19 @@ def _fmt(v):
     if v is None or (isinstance(v, float) and not np.isfinite(v)):
         return "—"
     return f"{v:.4g}"
+
+
+def _breakaway_text(field: str, e: dict) -> str:
+    """One breakaway torque for the report: the torque the model sticks to, its consistent range,
+    and whether it is eq. 9's own friction at rest (no breakaway above it)."""
+    name = field.replace("_", " ")
+    if "effective" not in e:  # a fit.json written before `breakaway_summary`
+        return f"{name} {e['value']:.4g} N·m"
+    lo, hi = e["consistent_range"]
+    text = f"{name} {e['effective']:.4g} N·m [{lo:.4g}, {hi:.4g}]"
+    if e["value"] <= e["at_rest_eq9"]:
+        text += " (eq. 9's friction at rest: no breakaway above it found)"
+    return text
 
 
 def _report(r: dict, truth) -> str:
@@ -548,10 +592,10 @@ def _report(r: dict, truth) -> str:
                          for k, e in form["sensor_bandwidth"].items() if k != "note")
         lines.append(f"- sensor bandwidth fitted with the parameters (first-order lags of the simulated outputs): {lags}")
     if form.get("breakaway_friction"):
-        ex = ", ".join(f"{k.replace('_', ' ')} {e['value']:.4g} N·m" for k, e in form["breakaway_friction"].items()
-                       if k != "note")
+        ex = ", ".join(_breakaway_text(k, e) for k, e in form["breakaway_friction"].items() if k != "note")
         lines.append(f"- breakaway torques, static friction above eq. 9's at rest (a grid search, then LM again with them "
-                     f"held; stick/slip events give no derivative, so no standard error): {ex}")
+                     f"held; stick/slip events give no derivative, so no standard error; in brackets the torques the "
+                     f"data do not tell apart from it): {ex}")
     if r["fit"].get("std_error_method") == "block_sandwich":
         lines.append(f"- std errors: robust to a misfit correlated over {r['fit']['std_error_block_s']:g} s (block sandwich); the white-noise "
                      "Gauss–Newton ones are in fit.json (`std_error_white`) and are smaller where the model is not exact")
