@@ -263,3 +263,38 @@ def test_tune_keeps_the_fitted_breakaway_torques_and_says_what_it_leaves_out():
     at_rest = [int(np.sum(np.abs(np.asarray(r.motor_velocity)) < 1e-9)) for r in (free_run, held_run)]
     print("samples at rest, plain and with breakaway:", at_rest)
     assert at_rest[1] > at_rest[0]
+
+
+def test_plant_sets_scale_the_breakaway_torques_with_their_friction():
+    """The robust cost's plant sets drift their friction by a common factor (`tune.friction_uncertainty`);
+    their breakaway torques drift with it (`_plant_effects`, effects stacked per plant), and
+    `batch_cost` with those stacked effects gives each plant what a plant built alone with its
+    own breakaway torques gives."""
+    from hdjax import BreakawayFriction
+    from hdjax._workflows.tune import _plant_effects, draw_parameter_sets
+
+    plant, ctrl = _setup()
+    p = plant.parameters
+    sets, factors = draw_parameter_sets(p, {}, 3, seed=0, friction_uncertainty=0.2, with_friction_factors=True)
+    np.testing.assert_array_equal(np.asarray(sets.Tsp), np.asarray(draw_parameter_sets(p, {}, 3, seed=0,
+                                                                                       friction_uncertainty=0.2).Tsp))
+    np.testing.assert_allclose(np.asarray(sets.Tsp) / float(p.Tsp), factors)
+    assert factors[0] == 1.0 and sorted(factors[1:]) == pytest.approx([0.8, 1.2])
+    bp, bn = 3.0 * float(p.Tsp + p.Tssp1), 3.0 * float(p.Tsn + p.Tssn1)
+    eff = Effects().with_term(BreakawayFriction(breakaway_p=bp, breakaway_n=bn))
+    assert _plant_effects(Effects(), factors) == (Effects(), False)
+    stacked, per_plant = _plant_effects(eff, factors)
+    assert per_plant
+    np.testing.assert_allclose(np.asarray(stacked.breakaway_friction.breakaway_p), bp * factors)
+    np.testing.assert_allclose(np.asarray(stacked.breakaway_friction.breakaway_n), bn * factors)
+    ref = step_reference(float(p.Tsp) * float(plant.drive.gear_ratio) * 0.5, duration=0.05)
+    R = jax.tree.map(lambda x: jnp.asarray(x)[None], ref)
+    g = TorqueGains(kp=0.3, ki=100.0)
+    track, _ = batch_cost(g, Plant(sets, plant.drive, stacked), R, controller=ctrl, scales=jnp.ones(1),
+                          effects_per_plant=True)
+    for j in range(3):
+        alone = Plant(jax.tree.map(lambda x: x[j], sets), plant.drive, Effects().with_term(
+            BreakawayFriction(breakaway_p=bp * factors[j], breakaway_n=bn * factors[j])))
+        t = closed_loop(g, alone, ref, controller=ctrl)
+        assert float(track[j, 0]) == pytest.approx(float(jnp.mean((t.reference - t.torque) ** 2)), rel=1e-10)
+    assert len({round(float(x), 12) for x in track[:, 0]}) == 3  # the three plants differ

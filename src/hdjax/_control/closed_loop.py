@@ -594,12 +594,13 @@ def batch_cost(
     refine: int = 4,
     smoothing: Smoothing = Smoothing(),
     solver: str = "velocity_implicit",
+    effects_per_plant: bool = False,
 ) -> tuple[Float[Array, "plant reference"], Float[Array, "plant reference"]]:
     """Tracking and tuning cost of every (plant, reference) pair, `vmap`ped over both.
 
-    `plants` is a `Plant` whose `parameters` leaves carry a leading `plant` axis (drive and
-    effects shared); `references` carries a leading `reference` axis, `scales` (N·m) normalise
-    each reference's error, `noise` holds measurement-noise sequences per reference (the same for
+    `plants` is a `Plant` whose `parameters` leaves carry a leading `plant` axis (drive shared;
+    effects shared, or with `effects_per_plant` stacked along the same axis); `references` carries
+    a leading `reference` axis, `scales` (N·m) normalise each reference's error, `noise` holds measurement-noise sequences per reference (the same for
     every plant: common random numbers); `substeps`, `refine`, `smoothing`, `solver` as in `closed_loop`.
     Tracking cost: $\\overline{(r-T)^2}/s^2$ (-); tuning cost
     adds `effort_weight`·$\\overline{(\\Delta i)^2}/i_{max}^2$ (-), which charges current chatter.
@@ -608,9 +609,9 @@ def batch_cost(
         zeros = jnp.zeros_like(references.torque)
         noise = (zeros, zeros)
 
-    def one(params, ref, scale, nT, nw):
+    def one(params, effects, ref, scale, nT, nw):
         traj = closed_loop(
-            gains, Plant(params, plants.drive, plants.effects), ref, controller=controller, noise=(nT, nw),
+            gains, Plant(params, plants.drive, effects), ref, controller=controller, noise=(nT, nw),
             substeps=substeps, refine=refine, smoothing=smoothing, solver=solver,
         )  # fmt: skip
         track = jnp.mean((traj.reference - traj.torque) ** 2) / scale**2
@@ -618,9 +619,9 @@ def batch_cost(
         effort = jnp.mean(di**2) / controller.current_limit**2
         return track, track + effort_weight * effort
 
-    over_refs = jax.vmap(one, in_axes=(None, 0, 0, 0, 0))
-    over_plants = jax.vmap(over_refs, in_axes=(0, None, None, None, None))
-    return over_plants(plants.parameters, references, jnp.asarray(scales), noise[0], noise[1])
+    over_refs = jax.vmap(one, in_axes=(None, None, 0, 0, 0, 0))
+    over_plants = jax.vmap(over_refs, in_axes=(0, 0 if effects_per_plant else None, None, None, None, None))
+    return over_plants(plants.parameters, plants.effects, references, jnp.asarray(scales), noise[0], noise[1])
 
 
 @jax.custom_vjp

@@ -45,7 +45,7 @@ import math
 import pathlib
 import time
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, Literal, overload
 
 import jax
 import jax.numpy as jnp
@@ -199,8 +199,17 @@ def _identified(dataset: Dataset, config: dict, opts: dict, out: pathlib.Path, l
     return Parameters.from_dict(params), effects, per, (float(nl["torque"]), float(nl["motor_velocity"])), source
 
 
+@overload
+def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, seed: int = ...,
+                        friction_uncertainty: float = ...,
+                        with_friction_factors: Literal[False] = ...) -> Parameters: ...
+@overload
+def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, seed: int = ...,
+                        friction_uncertainty: float = ...,
+                        with_friction_factors: Literal[True]) -> tuple[Parameters, np.ndarray]: ...
 def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, seed: int = 0,
-                        friction_uncertainty: float = 0.0) -> Parameters:
+                        friction_uncertainty: float = 0.0,
+                        with_friction_factors: bool = False) -> Parameters | tuple[Parameters, np.ndarray]:
     """`n` plant parameter sets (stacked leaves, leading axis `plant`), the first the nominal one.
     Each parameter is drawn independently from its per-experiment estimates (None/NaN skipped),
     recentred on the nominal value: multiplicatively ($v\\,e_j/\\bar e$) when the estimates share a
@@ -211,7 +220,10 @@ def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, se
     (`hdjax._model.paper.EQ9_COEFFICIENTS`) multiplied by a common factor $1 + u\\,z_j$, the $z_j$ spread evenly over
     $[-1, 1]$ (so the set holds the friction $u$ above and below the identified one). The
     controller's friction feed-forward keeps the identified values: a controller that leans on
-    it is charged for friction that drifts with temperature and wear, or that the fit got wrong."""
+    it is charged for friction that drifts with temperature and wear, or that the fit got wrong.
+
+    Returns the stacked `Parameters`; with `with_friction_factors` also the factors, shape
+    (plant,), 1 for the nominal plant (`_plant_effects` scales the breakaway torques by them)."""
     rng = np.random.default_rng(seed)
     out = {}
     for k in PARAMETER_NAMES:
@@ -227,12 +239,28 @@ def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, se
             else:
                 col[1:] = v + pick - m
         out[k] = col
+    factors = np.ones(n)
     if friction_uncertainty > 0 and n > 1:
         z = np.linspace(-1.0, 1.0, n - 1) if n > 2 else np.ones(1)
         z = rng.permutation(z)
+        factors[1:] = 1.0 + friction_uncertainty * z
         for k in EQ9_COEFFICIENTS:
-            out[k][1:] *= 1.0 + friction_uncertainty * z
-    return Parameters(**{k: jnp.asarray(v) for k, v in out.items()})
+            out[k][1:] *= factors[1:]
+    params = Parameters(**{k: jnp.asarray(v) for k, v in out.items()})
+    return (params, factors) if with_friction_factors else params
+
+
+def _plant_effects(effects: Effects, factors: np.ndarray) -> tuple[Effects, bool]:
+    """The tuning model's effects per plant set: with `breakaway_friction` on, its torques scaled
+    by each plant's friction factor (`draw_parameter_sets`), stacked along a leading `plant` axis
+    (True); otherwise `effects`, shared by every plant (False). A breakaway torque is friction: a
+    plant set whose friction drifts by a factor breaks away at that factor too."""
+    if "breakaway_friction" not in effects.active:
+        return effects, False
+    b = effects.breakaway_friction
+    each = [effects.with_values("breakaway_friction", breakaway_p=float(b.breakaway_p) * f,
+                                breakaway_n=float(b.breakaway_n) * f) for f in factors]
+    return jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *each), True
 
 
 def _stack(trees):
@@ -420,7 +448,7 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     R_cost = _stack(refs * K)
     sm = Smoothing(velocity_scale=float(opts["velocity_scale"]), torsion_rate_scale=float(opts["torsion_rate_scale"]))
     nominal_plant = Plant(nominal, drive, effects)
-    plant_sets, (z, Pall, sss, loop_labels) = _plant_sets(nominal, per, drive, ref_info, ts, df, opts)
+    plant_sets, factors, (z, Pall, sss, loop_labels) = _plant_sets(nominal, per, drive, ref_info, ts, df, opts)
 
     def margins(g):  # the linearised loops' stability and Ms for gains `g`
         return _margin_report(g, z, Pall, sss, loop_labels, ts, df)
@@ -432,9 +460,10 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     timing["baselines"] = time.time() - t0
 
     log(f"[4/6] robust tuning: {opts['plants']} plant sets x {len(refs)} references (vmap) + Ms terms on {len(loop_labels)} linearised loops")
-    plants = Plant(plant_sets, drive, effects)
+    plant_effects, per_plant = _plant_effects(effects, factors)
+    plants = Plant(plant_sets, drive, plant_effects)
     kw: dict[str, Any] = dict(controller=ctrl, scales=jnp.tile(scales, K), noise=noise_all, substeps=int(opts["substeps"]), smoothing=sm,
-                          solver=opts["solver"])
+                          solver=opts["solver"], effects_per_plant=per_plant)
     parts_jit, cost_fn, total = _objective(plants, R_cost, kw, K, len(refs), z, Pall, loop_labels, ts, df, opts)
     t0 = time.time()
     search = _start_search(_start_candidates(zn, model_pi, kp_m, ki_m, opts), total, margins, log)
@@ -520,10 +549,11 @@ def _measurement_noise(opts: dict, K: int, n: int, sigma):
 def _plant_sets(nominal: Parameters, per: dict, drive, ref_info, ts: float, df: float, opts: dict):
     """`tune.plants` parameter sets drawn around the identified ones (batched), and the linearised
     sampled loops of each set (`_linear_loops`)."""
-    plant_sets = draw_parameter_sets(nominal, per, int(opts["plants"]), seed=int(opts["seed"]),
-                                     friction_uncertainty=float(opts["friction_uncertainty"]))
+    plant_sets, factors = draw_parameter_sets(nominal, per, int(opts["plants"]), seed=int(opts["seed"]),
+                                              friction_uncertainty=float(opts["friction_uncertainty"]),
+                                              with_friction_factors=True)
     params_list = [jax.tree.map(lambda x: x[j], plant_sets) for j in range(int(opts["plants"]))]
-    return plant_sets, _linear_loops(params_list, drive, ref_info, ts, df)
+    return plant_sets, factors, _linear_loops(params_list, drive, ref_info, ts, df)
 
 
 def _relay_zn(nominal_plant: Plant, ref_info, opts: dict, ilim: float, ts: float, sm: Smoothing, notes, log):
