@@ -234,8 +234,8 @@ def test_tune_moves_a_presliding_model_to_the_smoothed_plant_and_says_so():
 
 def test_tune_keeps_the_fitted_breakaway_torques_and_says_what_it_leaves_out():
     """`tune` simulates the loop with the terms the fit fitted (fit.json's `model_form`): the
-    breakaway torques stay on the exact plant; the sensor lags (not modelled in the loop) and, on
-    the smoothed plant, the breakaway torques are left out with a note each."""
+    sensor lags always, the breakaway torques on the exact plant; on the smoothed plant the
+    breakaway torques are left out with a note."""
     from hdjax import BreakawayFriction, SensorBandwidth
     from hdjax._workflows.tune import _tuning_effects
 
@@ -243,13 +243,13 @@ def test_tune_keeps_the_fitted_breakaway_torques_and_says_what_it_leaves_out():
         BreakawayFriction(breakaway_p=0.1, breakaway_n=0.09))
     notes = []
     kept = _tuning_effects(eff, "velocity_implicit", notes, lambda *_: None)
-    assert kept.active == {"breakaway_friction"} and len(notes) == 1 and "sensor lags" in notes[0]
+    assert kept.active == {"sensor_bandwidth", "breakaway_friction"} and notes == []
     notes = []
-    assert _tuning_effects(eff, "rodas3", notes, lambda *_: None).active == frozenset() and len(notes) == 2
-    assert "breakaway" in notes[1] and "velocity_implicit" in notes[1]
+    assert _tuning_effects(eff, "rodas3", notes, lambda *_: None).active == {"sensor_bandwidth"} and len(notes) == 1
+    assert "breakaway" in notes[0] and "velocity_implicit" in notes[0]
     notes = []
     off = _tuning_effects(eff, "velocity_implicit", notes, lambda *_: None, breakaway=False)
-    assert off.active == frozenset() and "tune.breakaway_friction: false" in notes[1]
+    assert off.active == {"sensor_bandwidth"} and "tune.breakaway_friction: false" in notes[0]
     # and the loop feels them: a motor at rest under a small held torque demand stays stuck longer
     # with breakaway torques above eq. 9's at rest (the plain plant breaks away at Tsp + Tssp1)
     plant, ctrl = _setup()
@@ -298,3 +298,31 @@ def test_plant_sets_scale_the_breakaway_torques_with_their_friction():
         t = closed_loop(g, alone, ref, controller=ctrl)
         assert float(track[j, 0]) == pytest.approx(float(jnp.mean((t.reference - t.torque) ** 2)), rel=1e-10)
     assert len({round(float(x), 12) for x in track[:, 0]}) == 3  # the three plants differ
+
+
+@pytest.mark.parametrize("solver", ["velocity_implicit", "rodas3"])
+def test_the_controller_reads_the_plant_through_the_fitted_sensor_lags(solver):
+    """With `sensor_bandwidth` on the plant, the loop's noise-free readings are exactly the fit's
+    sensor model (`simulate`'s `_first_order_lag`, a = τ/(τ + Ts), started at the first sample)
+    applied to the loop's own torque and motor velocity; the lags change what the controller
+    does (a PI near its stability limit rings more), and lags of zero change nothing."""
+    from hdjax import SensorBandwidth
+    from hdjax._plant.simulate import _first_order_lag
+
+    plant, ctrl = _setup()
+    p = plant.parameters
+    ref = step_reference(float(p.Tsp) * float(plant.drive.gear_ratio) * 2.0, duration=0.06)
+    g = TorqueGains(kp=0.3, ki=100.0, kf=0.5)
+    lags = SensorBandwidth(torque_lag=6e-4, velocity_lag=9e-4)
+    lagged = closed_loop(g, Plant(p, plant.drive, Effects().with_term(lags)), ref, controller=ctrl, solver=solver,
+                         smoothing=SM)
+    for x, y, tau in ((lagged.measured_torque, lagged.torque, lags.torque_lag),):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(_first_order_lag(y, tau, 1e-3)), rtol=0, atol=1e-12)
+    plain = closed_loop(g, plant, ref, controller=ctrl, solver=solver, smoothing=SM)
+    zero = closed_loop(g, Plant(p, plant.drive, Effects().with_term(SensorBandwidth())), ref, controller=ctrl,
+                       solver=solver, smoothing=SM)
+    np.testing.assert_array_equal(np.asarray(zero.torque), np.asarray(plain.torque))
+    np.testing.assert_array_equal(np.asarray(plain.measured_torque), np.asarray(plain.torque))
+    err = [float(np.sqrt(np.mean((np.asarray(r.torque) - np.asarray(r.reference)) ** 2))) for r in (plain, lagged)]
+    print(f"{solver}: tracking RMS without / with the lags {err[0]:.4g} / {err[1]:.4g} N·m")
+    assert abs(err[1] - err[0]) > 1e-3 * err[0]

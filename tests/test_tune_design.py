@@ -196,3 +196,35 @@ def test_plant_sets_carry_the_friction_uncertainty():
     np.testing.assert_allclose(np.asarray(sets.K1), float(p.K1))
     none = draw_parameter_sets(p, {}, 6, seed=0)
     np.testing.assert_allclose(np.asarray(none.Tsp), float(p.Tsp))
+
+
+def test_a_torque_sensor_lag_enters_the_linearised_loop_as_a_low_pass_before_the_sampler():
+    """`plant_response(..., sensor_lag=τ)`: the strain gauge's continuous first-order low-pass
+    appended to the plant before it is sampled. At low frequency the response is the lag-free
+    one times 1/(1 + iωτ); near the Nyquist frequency it lags more than the sample-level filter
+    (1 − a) z / (z − a) of the fit (which has none there); the returned state space gives the
+    response; the same PI has less phase margin. A lead (τ < 0) takes the sample-level form."""
+    p, drive = hd1()
+    ts, tau = 1e-3, 6e-4
+    for free in (False, True):
+        z, P0, _ = ls.plant_response(p, drive, free=free, ts=ts, rate_amplitude=0.01)
+        z, P1, (Ad, Bd, C) = ls.plant_response(p, drive, free=free, ts=ts, rate_amplitude=0.01, sensor_lag=tau)
+        w = np.angle(z) / ts  # rad/s
+        low = w < 2 * np.pi * 1.0
+        np.testing.assert_allclose(P1[low] / P0[low], 1.0 / (1.0 + 1j * w[low] * tau), atol=2e-3)  # unit DC gain
+        a = tau / (tau + ts)
+        be = (1 - a) * z / (z - a)
+        k = int(np.argmin(np.abs(w - 0.6 * np.pi / ts)))  # 0.6 of the Nyquist frequency
+        print(f"phase at 0.6 Nyquist: before the sampler {np.degrees(np.angle(P1[k] / P0[k])):.1f} deg, "
+              f"sample-level {np.degrees(np.angle(be[k])):.1f} deg")
+        assert np.angle(P1[k] / P0[k]) < np.angle(be[k]) - (0.0 if free else 0.2)  # rad (locked: -37 against -18 deg)
+        n = Ad.shape[0]
+        P_ss = np.array([(C @ np.linalg.solve(zz * np.eye(n) - Ad, Bd))[0, 0] for zz in z])
+        np.testing.assert_allclose(P_ss, P1, rtol=1e-9)
+        pm = [ls.margins(0.2, 100.0, 0.0, z, P, ts=ts, derivative_filter=2e-3)["phase_margin_deg"] for P in (P0, P1)]
+        print(f"free={free}: phase margin without / with the lag {pm[0]:.1f} / {pm[1]:.1f} deg")
+        assert pm[1] < pm[0] - 1.0
+        assert ls.closed_loop_radius(0.2, 100.0, 0.0, (Ad, Bd, C), ts=ts, derivative_filter=2e-3) < 1.0
+        z, P2, _ = ls.plant_response(p, drive, free=free, ts=ts, rate_amplitude=0.01, sensor_lag=-2e-4)
+        a = -2e-4 / (-2e-4 + ts)
+        np.testing.assert_allclose(P2, P0 * (1 - a) * z / (z - a), rtol=1e-9)

@@ -4,7 +4,9 @@ The loop (SI units), at every sample instant $t_k = k\,T_s$ of the torque sensor
 
 1. measure: torque $y_k = T(t_k) + r_{ripple}(\theta_m) + n^T_k$ (strain gauges, with the plant's
    `torque_sensor_ripple` effect if any) and wave-generator velocity $w_k = \omega_m(t_k) + n^\omega_k$
-   (tachometer);
+   (tachometer); with the plant's `sensor_bandwidth` effect (the sensor lags the fit identifies)
+   the noise-free readings first pass the same first-order low-pass as in `simulate`
+   ($y^f_k = a\,y^f_{k-1} + (1-a)\,x_k$, $a = \tau/(\tau + T_s)$, started at $y^f_0 = x_0$);
 2. control law, PI(D) on measured torque plus model-based feed-forward:
    $$u_k = k_r\frac{r_k}{N K_m} + k_j\frac{N \hat J_{eff}\,r_k}{J_L K_m} + k_p e_k + I_k
    - k_d\,\dot y^f_k + k_f\frac{\hat T_f(w_k)}{K_m}, \qquad e_k = r_k - y_k,$$
@@ -241,6 +243,27 @@ def _noise_samples(noise, n):
     return tuple(jnp.broadcast_to(jnp.asarray(x, dtype=float), (n,)) for x in noise)
 
 
+def _sensor_lags(effects: Effects, ts) -> tuple[Float[Array, ""], Float[Array, ""]] | None:
+    """The low-pass factors (a_T, a_ω) of the plant's `sensor_bandwidth` lags at the sample period
+    `ts` (s), as `simulate`'s `_first_order_lag` (a lead down to −0.45 `ts`); None without it."""
+    if "sensor_bandwidth" not in effects.active:
+        return None
+    sb = effects.sensor_bandwidth
+    lag = [jnp.maximum(t, -0.45 * ts) for t in (sb.torque_lag, sb.velocity_lag)]
+    return lag[0] / (lag[0] + ts), lag[1] / (lag[1] + ts)
+
+
+def _sensed(lags, previous, k, torque, velocity):
+    """The noise-free torque and velocity readings at sample `k` through the sensors' low-passes
+    `lags` (`_sensor_lags`; None: unfiltered), from the `previous` readings; returns the readings
+    twice (the second as the filter state carried to the next sample)."""
+    if lags is None:
+        return (torque, velocity), previous
+    first = k == 0
+    out = tuple(jnp.where(first, x, a * x_prev + (1.0 - a) * x) for a, x_prev, x in zip(lags, previous, (torque, velocity)))
+    return out, out
+
+
 def _scan_loop(step, carry0, ts, r, nT, nw) -> LoopTrajectory:
     """`lax.scan` of the loop's sample step `step(carry, (k, r_k, nT_k, nw_k))` over the reference
     `r` (sample period `ts`, s) and the noise samples, into a `LoopTrajectory`."""
@@ -274,13 +297,16 @@ def _run_loop_rodas3(law, law_state0, plant: Plant, reference: Reference, *, sam
     # presliding s)
     scales = (1.0 / p.K1, 1.0, 1e-3, 1e-2, 1e-2, 1e-2)[: len(y0)]
 
+    lags = _sensor_lags(effects, ts)
+
     def step(carry, inputs):
-        y, law_state, i_prev = carry
+        y, law_state, i_prev, sensed = carry
         k, r_k, nT_k, nw_k = inputs
         t_k = k * ts
         th_m, _, _, T = _outputs(p, drive, y, geometry, effects, smoothing)
-        y_meas = T + effects.periodic("torque_sensor_ripple", th_m) + nT_k
-        w_meas = y[1] + nw_k
+        (y_sensed, w_sensed), sensed = _sensed(lags, sensed, k, T + effects.periodic("torque_sensor_ripple", th_m), y[1])
+        y_meas = y_sensed + nT_k
+        w_meas = w_sensed + nw_k
         law_state, i, u = law(law_state, r_k, y_meas, w_meas)
         args = (p_dyn, drive, _Held(t_k, i_prev, i), reference.free, zero, geometry, effects, smoothing_dyn)
 
@@ -302,15 +328,15 @@ def _run_loop_rodas3(law, law_state0, plant: Plant, reference: Reference, *, sam
         y_a, err = advance(1)
         if refine <= 1:  # no refinement: one pass, failed steps only flagged
             y_next = y_a
-            return (y_next, law_state, i), (T, y_meas, y[1], y[3], i, u, ~(err < 1.0))
+            return (y_next, law_state, i, sensed), (T, y_meas, y[1], y[3], i, u, ~(err < 1.0))
         bad = ~(err < 1.0)
         # on a failed step, redo the interval with `refine`x finer steps, starting from a state that is
         # finite in both branches so that no NaN leaks into the gradient of the branch not taken
         y_b, _ = advance(refine)
         y_next = jax.tree.map(lambda a, b: jnp.where(bad, b, jnp.where(jnp.isfinite(a), a, 0.0)), y_a, y_b)
-        return (y_next, law_state, i), (T, y_meas, y[1], y[3], i, u, bad)
+        return (y_next, law_state, i, sensed), (T, y_meas, y[1], y[3], i, u, bad)
 
-    return _scan_loop(step, (y0, law_state0, zero), ts, r, nT, nw)
+    return _scan_loop(step, (y0, law_state0, zero, (zero, zero)), ts, r, nT, nw)
 
 
 def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_period, noise, substeps, smoothing, refine=8,
@@ -344,13 +370,17 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
     at_rest = plant_at(_Held(zero, zero, zero))  # its angle does not depend on the current
     state0 = at_rest.start((zero,) * 4, zero)
 
+    lags = _sensor_lags(effects, ts)
+
     def step(carry, inputs):
-        st, law_state, i_prev = carry
+        st, law_state, i_prev, sensed = carry
         k, r_k, nT_k, nw_k = inputs
         t_k = k * ts
         T = st[6]
-        y_meas = T + effects.periodic("torque_sensor_ripple", at_rest.theta_m(st[0], st[2], t_k)) + nT_k
-        w_meas = st[1] + nw_k
+        ripple = effects.periodic("torque_sensor_ripple", at_rest.theta_m(st[0], st[2], t_k))
+        (y_sensed, w_sensed), sensed = _sensed(lags, sensed, k, T + ripple, st[1])
+        y_meas = y_sensed + nT_k
+        w_meas = w_sensed + nw_k
         law_state, i, u = law(law_state, r_k, y_meas, w_meas)
         steps = plant_at(_Held(t_k, i_prev, i))
         # the new current acts from t_k on: a stuck motor's holding friction follows it
@@ -360,9 +390,9 @@ def _run_loop(law, law_state0, plant: Plant, reference: Reference, *, sample_per
             return steps.step(x, t_k + j * h)
 
         st_next, conv = jax.lax.scan(sub, st1, jnp.arange(substeps, dtype=float))
-        return (st_next, law_state, i), (T, y_meas, st[1], st[3], i, u, ~jnp.all(conv))
+        return (st_next, law_state, i, sensed), (T, y_meas, st[1], st[3], i, u, ~jnp.all(conv))
 
-    return _scan_loop(step, (state0, law_state0, zero), ts, r, nT, nw)
+    return _scan_loop(step, (state0, law_state0, zero, (zero, zero)), ts, r, nT, nw)
 
 
 def closed_loop(
@@ -383,7 +413,8 @@ def closed_loop(
     **Arguments:**
 
     - `gains`: `TorqueGains`.
-    - `plant`: `Plant` (the truth being controlled; its effects act, e.g. sensor ripple).
+    - `plant`: `Plant` (the truth being controlled; its effects act, e.g. sensor ripple, and the
+      sensor lags of `sensor_bandwidth` low-pass the readings the controller gets).
     - `reference`: `Reference` (torque samples at `controller.sample_period`, locked or free).
     - `controller`: `TorqueController` (feed-forward model, limits, sample period).
     - `noise`: optional `(torque_noise, velocity_noise)` sample sequences (N·m, rad/s) added to

@@ -331,10 +331,11 @@ def _references(dataset: Dataset, drive, opts: dict, ts: float, nominal: Paramet
     return refs, info
 
 
-def _linear_loops(params_list, drive, ref_info, ts, derivative_filter):
-    """Sampled linearised locked and free plants of every parameter set: (z, P (loops, freq),
-    state spaces, labels). Torsion-rate amplitude of the describing function: reference amplitude
-    × locked resonance / K1."""
+def _linear_loops(params_list, drive, ref_info, ts, derivative_filter, sensor_lag: float = 0.0):
+    """Sampled linearised locked and free plants of every parameter set, measured through the
+    torque sensor's lag `sensor_lag` (s; `ls.plant_response`): (z, P (loops, freq), state spaces,
+    labels). Torsion-rate amplitude of the describing function: reference amplitude × locked
+    resonance / K1."""
     z = None
     Ps, sss, labels = [], [], []
     A_locked = ref_info[0]["amplitude"]
@@ -343,7 +344,7 @@ def _linear_loops(params_list, drive, ref_info, ts, derivative_filter):
         wr = math.sqrt(float(p.K1) / (float(drive.gear_ratio) ** 2 * float(p.Jeff)))
         for free, A in ((False, A_locked), (True, A_free)):
             R = max(A * wr / float(p.K1), 1e-6)
-            z, P, ss = ls.plant_response(p, drive, free=free, ts=ts, rate_amplitude=R)
+            z, P, ss = ls.plant_response(p, drive, free=free, ts=ts, rate_amplitude=R, sensor_lag=sensor_lag)
             Ps.append(P)
             sss.append(ss)
             labels.append(f"plant {j} {'free' if free else 'locked'}")
@@ -403,12 +404,12 @@ def _plant_solver(opts: dict, effects: Effects, notes: list, log) -> dict:
 
 def _tuning_effects(effects: Effects, solver: str, notes: list, log, *, breakaway: bool = True) -> Effects:
     """The identified `effects` less what the closed-loop plant does not model, each left out with a
-    note: `sensor_bandwidth` (the fit's sensor lags: the loop measures the plant's torque and
-    velocity at the sample instants, unfiltered), and `breakaway_friction` on the smoothed `rodas3`
-    plant (breakaway needs the exact plant's set-valued sticking) or when `breakaway` is False
-    (`tune.breakaway_friction: false`)."""
-    drop = {"sensor_bandwidth": "the fitted sensor lags are not modelled in the closed loop (it measures the plant's "
-                                "torque and velocity unfiltered at the sample instants)"}
+    note: `breakaway_friction` on the smoothed `rodas3` plant (breakaway needs the exact plant's
+    set-valued sticking) or when `breakaway` is False (`tune.breakaway_friction: false`). The
+    fit's sensor lags (`sensor_bandwidth`) stay: the loop's controller reads the torque and
+    velocity through them (`hdjax._control.closed_loop`), and the linearised loops through the
+    torque lag."""
+    drop = {}
     if solver != "velocity_implicit":
         drop["breakaway_friction"] = (f"the fitted breakaway torques are left out: the {solver} plant has no exact "
                                       f"sticking (`tune.solver: velocity_implicit` keeps them)")
@@ -448,7 +449,9 @@ def run_tune(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) ->
     R_cost = _stack(refs * K)
     sm = Smoothing(velocity_scale=float(opts["velocity_scale"]), torsion_rate_scale=float(opts["torsion_rate_scale"]))
     nominal_plant = Plant(nominal, drive, effects)
-    plant_sets, factors, (z, Pall, sss, loop_labels) = _plant_sets(nominal, per, drive, ref_info, ts, df, opts)
+    torque_lag = float(effects.sensor_bandwidth.torque_lag) if "sensor_bandwidth" in effects.active else 0.0
+    plant_sets, factors, (z, Pall, sss, loop_labels) = _plant_sets(nominal, per, drive, ref_info, ts, df, opts,
+                                                                   sensor_lag=torque_lag)
 
     def margins(g):  # the linearised loops' stability and Ms for gains `g`
         return _margin_report(g, z, Pall, sss, loop_labels, ts, df)
@@ -546,14 +549,16 @@ def _measurement_noise(opts: dict, K: int, n: int, sigma):
     return noise_all, noise
 
 
-def _plant_sets(nominal: Parameters, per: dict, drive, ref_info, ts: float, df: float, opts: dict):
-    """`tune.plants` parameter sets drawn around the identified ones (batched), and the linearised
-    sampled loops of each set (`_linear_loops`)."""
+def _plant_sets(nominal: Parameters, per: dict, drive, ref_info, ts: float, df: float, opts: dict, *,
+                sensor_lag: float = 0.0):
+    """`tune.plants` parameter sets drawn around the identified ones (batched), their friction
+    factors, and the linearised sampled loops of each set measured through the torque sensor's lag
+    `sensor_lag` (s; `_linear_loops`)."""
     plant_sets, factors = draw_parameter_sets(nominal, per, int(opts["plants"]), seed=int(opts["seed"]),
                                               friction_uncertainty=float(opts["friction_uncertainty"]),
                                               with_friction_factors=True)
     params_list = [jax.tree.map(lambda x: x[j], plant_sets) for j in range(int(opts["plants"]))]
-    return plant_sets, factors, _linear_loops(params_list, drive, ref_info, ts, df)
+    return plant_sets, factors, _linear_loops(params_list, drive, ref_info, ts, df, sensor_lag)
 
 
 def _relay_zn(nominal_plant: Plant, ref_info, opts: dict, ilim: float, ts: float, sm: Smoothing, notes, log):
