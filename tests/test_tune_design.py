@@ -198,6 +198,27 @@ def test_plant_sets_carry_the_friction_uncertainty():
     np.testing.assert_allclose(np.asarray(none.Tsp), float(p.Tsp))
 
 
+def test_plant_sets_leave_out_a_per_experiment_estimate_that_ran_off():
+    """A per-experiment fit that runs off along a flat direction (the shipped HD2 campaign: one
+    record's Tssp1 at -1.2e5 N·m beside -0.64 ... +0.32) must not set the plant sets: recentred on
+    the mean it gave every drawn plant Tssp1 near +8 000 N·m. Outliers (beyond 5 scaled MADs of
+    the median) are left out and the draws are recentred on the median: every drawn value lies
+    within the spread of the other estimates around the nominal one."""
+    from hdjax._workflows.tune import _without_outliers, draw_parameter_sets
+
+    p, _ = hd1()
+    good = [-0.149, -0.124, -0.053, -0.057, -0.076, -0.061, -0.090, -0.070]
+    sets = draw_parameter_sets(p, {"Tssp1": good + [-1.19e5]}, 40, seed=3)
+    drawn = np.asarray(sets.Tssp1)
+    v, med = float(p.Tssp1), float(np.median(good))
+    assert drawn[0] == v
+    lo, hi = sorted((v * max(good) / med, v * min(good) / med))
+    assert np.all(drawn[1:] >= lo - 1e-12) and np.all(drawn[1:] <= hi + 1e-12), (drawn, lo, hi)
+    assert len(set(np.round(drawn[1:], 12))) > 3  # still spread
+    np.testing.assert_array_equal(_without_outliers(np.array(good)), np.array(good))  # nothing left out of clean data
+    assert list(_without_outliers(np.array([1.0, 1.0, 1.0, 50.0]))) == [1.0, 1.0, 1.0, 50.0]  # MAD 0: all kept
+
+
 def test_a_torque_sensor_lag_enters_the_linearised_loop_as_a_low_pass_before_the_sampler():
     """`plant_response(..., sensor_lag=τ)`: the strain gauge's continuous first-order low-pass
     appended to the plant before it is sampled. At low frequency the response is the lag-free

@@ -211,10 +211,15 @@ def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, se
                         friction_uncertainty: float = 0.0,
                         with_friction_factors: bool = False) -> Parameters | tuple[Parameters, np.ndarray]:
     """`n` plant parameter sets (stacked leaves, leading axis `plant`), the first the nominal one.
-    Each parameter is drawn independently from its per-experiment estimates (None/NaN skipped),
-    recentred on the nominal value: multiplicatively ($v\\,e_j/\\bar e$) when the estimates share a
-    sign, additively otherwise, so the spread is the fit's consistency and the centre the best
-    estimate. Parameters with fewer than two estimates stay nominal.
+    Each parameter is drawn independently from its per-experiment estimates (None/NaN skipped,
+    and outliers: farther from their median than `OUTLIER_MADS` scaled median absolute
+    deviations), recentred on the nominal value: multiplicatively ($v\\,e_j/\\tilde e$, $\\tilde e$
+    their median) when the estimates share a sign, additively otherwise, so the spread is the
+    fit's consistency and the centre the best estimate. Parameters with fewer than two estimates
+    stay nominal. (One per-experiment fit that runs off along a flat direction must not set the
+    plant sets: on the shipped HD2 campaign one record's Stribeck amplitude Tssp1 came out at
+    −1.2e5 N·m, where the breakaway torque makes the cost flat; recentred on the mean it gave every
+    drawn plant Tssp1 ≈ +8 000 N·m and a tracking cost 300× the nominal plant's.)
 
     `friction_uncertainty` $u$ (-): plant $j \\ge 1$ also has all its eq. 9 friction terms
     (`hdjax._model.paper.EQ9_COEFFICIENTS`) multiplied by a common factor $1 + u\\,z_j$, the $z_j$ spread evenly over
@@ -229,11 +234,11 @@ def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, se
     for k in PARAMETER_NAMES:
         v = float(getattr(nominal, k))
         e = np.array([x for x in (per_experiment.get(k) or []) if x is not None], dtype=float)
-        e = e[np.isfinite(e)]
+        e = _without_outliers(e[np.isfinite(e)])
         col = np.full(n, v)
         if len(e) >= 2 and n > 1:
             pick = e[rng.integers(0, len(e), n - 1)]
-            m = e.mean()
+            m = float(np.median(e))
             if np.all(e > 0) or np.all(e < 0):
                 col[1:] = v * pick / m
             else:
@@ -248,6 +253,21 @@ def draw_parameter_sets(nominal: Parameters, per_experiment: dict, n: int, *, se
             out[k][1:] *= factors[1:]
     params = Parameters(**{k: jnp.asarray(v) for k, v in out.items()})
     return (params, factors) if with_friction_factors else params
+
+
+#: `draw_parameter_sets` leaves out per-experiment estimates farther than this many scaled median
+#: absolute deviations (1.4826 MAD, σ for normal data) from their median.
+OUTLIER_MADS = 5.0
+
+
+def _without_outliers(e: np.ndarray) -> np.ndarray:
+    """`e` less the values farther than `OUTLIER_MADS` scaled MADs from its median (all of `e`
+    when the MAD is 0 or fewer than three values)."""
+    if len(e) < 3:
+        return e
+    med = np.median(e)
+    mad = 1.4826 * np.median(np.abs(e - med))
+    return e if mad == 0 else e[np.abs(e - med) <= OUTLIER_MADS * mad]
 
 
 def _plant_effects(effects: Effects, factors: np.ndarray) -> tuple[Effects, bool]:
