@@ -69,7 +69,14 @@ from .._fit.parameterisation import Entry, Parameterisation, parameterisation
 from .._model.effects import Effects
 from .._model.paper import Drive, Parameters, Smoothing, _as_float, friction_torque
 from .._plant.rosenbrock import Rodas3
-from .._plant.simulate import _low_speed_friction, _outputs, _vector_field, state_size, stepper_friction
+from .._plant.simulate import (
+    _low_speed_friction,
+    _outputs,
+    _vector_field,
+    sensor_lag_factor,
+    state_size,
+    stepper_friction,
+)
 from .._plant.stepper import VelocityImplicit, plant_steps
 
 _REFINE_RTOL = 0.1  # relative part of the gross step-failure check (see the module doc)
@@ -245,12 +252,11 @@ def _noise_samples(noise, n):
 
 def _sensor_lags(effects: Effects, ts) -> tuple[Float[Array, ""], Float[Array, ""]] | None:
     """The low-pass factors (a_T, a_ω) of the plant's `sensor_bandwidth` lags at the sample period
-    `ts` (s), as `simulate`'s `_first_order_lag` (a lead down to −0.45 `ts`); None without it."""
+    `ts` (s), as `simulate` filters (`sensor_lag_factor`); None without it."""
     if "sensor_bandwidth" not in effects.active:
         return None
     sb = effects.sensor_bandwidth
-    lag = [jnp.maximum(t, -0.45 * ts) for t in (sb.torque_lag, sb.velocity_lag)]
-    return lag[0] / (lag[0] + ts), lag[1] / (lag[1] + ts)
+    return sensor_lag_factor(sb.torque_lag, ts), sensor_lag_factor(sb.velocity_lag, ts)
 
 
 def _sensed(lags, previous, k, torque, velocity):

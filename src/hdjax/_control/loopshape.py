@@ -32,6 +32,7 @@ import numpy as np
 import scipy.linalg
 
 from .._model.paper import Parameters, Smoothing, friction_torque
+from .._plant.simulate import MAX_SENSOR_LEAD, sensor_lag_factor
 
 
 def damping_equivalent(alpha: float, Tst: float, rate_amplitude: float) -> float:
@@ -92,7 +93,7 @@ def plant_response(p: Parameters, drive, *, free: bool, ts: float, rate_amplitud
     allows) takes the sample-level form; 0 leaves the sensor out."""
     freqs = frequency_grid(ts) if freqs is None else freqs
     A, B, C = linear_plant(p, drive, free=free, rate_amplitude=rate_amplitude)
-    tau = max(float(sensor_lag), -0.45 * ts)
+    tau = max(float(sensor_lag), -MAX_SENSOR_LEAD * ts)
     n0 = A.shape[0]
     if tau > 0.0:
         A = np.block([[A, np.zeros((n0, 1))], [C / tau, np.full((1, 1), -1.0 / tau)]])
@@ -100,7 +101,7 @@ def plant_response(p: Parameters, drive, *, free: bool, ts: float, rate_amplitud
         C = np.hstack([np.zeros((1, n0)), np.ones((1, 1))])
     Ad, Bd = zoh(A, B, ts)
     if tau < 0.0:
-        a = tau / (tau + ts)
+        a = float(sensor_lag_factor(tau, ts))
         Ad = np.block([[Ad, np.zeros((n0, 1))], [(1.0 - a) * C, np.full((1, 1), a)]])
         Bd = np.vstack([Bd, np.zeros((1, 1))])
         C = np.hstack([(1.0 - a) * C, np.full((1, 1), a)])

@@ -345,11 +345,25 @@ def stepper_friction(p: Parameters, effects: Effects, smoothing: Smoothing):
     return p_dyn, (smoothing_dyn.velocity_scale if "low_speed_friction" in effects.active else 0.0)
 
 
+#: Most lead (a negative sensor lag) the sensor model allows, in sample periods: down to −0.45 Δt
+#: the low-pass factor stays smooth and |a| < 1 (stable).
+MAX_SENSOR_LEAD = 0.45
+
+
+def sensor_lag_factor(tau, dt):
+    """The factor a = τ/(τ+Δt) of the sensors' sample-level low-pass (`_first_order_lag`) for a
+    lag `tau` (s) at the sample period `dt` (s), a lead clipped at −`MAX_SENSOR_LEAD`·Δt. Shared by
+    `simulate` and the sampled loop (`hdjax._control.closed_loop`)."""
+    tau = jnp.maximum(tau, -MAX_SENSOR_LEAD * dt)
+    return tau / (tau + dt)
+
+
 def _first_order_lag(x: Float[Array, " time"], tau, dt) -> Float[Array, " time"]:
     """First-order low-pass (time constant `tau` s, backward-Euler discretisation
-    y[n] = a·y[n−1] + (1−a)·x[n], a = τ/(τ+Δt)), started at y[0] = x[0]. Identity at τ = 0, with
-    a finite derivative there (∂a/∂τ = 1/Δt), so a sensor lag can be fitted from zero."""
-    a = tau / (tau + dt)
+    y[n] = a·y[n−1] + (1−a)·x[n], a = τ/(τ+Δt), `sensor_lag_factor`), started at y[0] = x[0].
+    Identity at τ = 0, with a finite derivative there (∂a/∂τ = 1/Δt), so a sensor lag can be
+    fitted from zero."""
+    a = sensor_lag_factor(tau, dt)
 
     def step(y, xn):
         y = a * y + (1.0 - a) * xn
@@ -660,8 +674,8 @@ def _measured(T, wm, th_m, th_o, wo, torsion, dt, effects: Effects, *, success, 
     if "sensor_bandwidth" in effects.active:
         # smooth through τ = 0 (where the fit starts); a negative τ (a lead, |a| < 1) is allowed
         # down to −0.45 Δt so that the map stays smooth there and stable everywhere
-        measured_T = _first_order_lag(measured_T, jnp.maximum(effects.sensor_bandwidth.torque_lag, -0.45 * dt), dt)
-        measured_w = _first_order_lag(measured_w, jnp.maximum(effects.sensor_bandwidth.velocity_lag, -0.45 * dt), dt)
+        measured_T = _first_order_lag(measured_T, effects.sensor_bandwidth.torque_lag, dt)
+        measured_w = _first_order_lag(measured_w, effects.sensor_bandwidth.velocity_lag, dt)
     if "sensor_offset" in effects.active:
         measured_T = measured_T + effects.sensor_offset.torque_offset
         measured_w = measured_w + effects.sensor_offset.velocity_offset
