@@ -762,6 +762,10 @@ class PerExperimentFit:
     - `free`: names of the parameters (columns of `values` and `mask`).
     - `mask`: (experiments, parameters) bool; True where the parameter was fitted on that experiment.
     - `values`: (experiments, parameters) estimates (SI), NaN where not fitted or not converged.
+    - `std_error`: (experiments, parameters) each estimate's standard error from its own record
+      (block sandwich, `block_covariance`; SI), NaN where not fitted or not converged.
+    - `undetermined`: (experiments, parameters) str: why the estimate does not count ("" where it
+      does): a standard error that is infinite (the record does not inform it) or over `se_rtol` of it.
     - `converged`: per experiment, LM stopped by one of its rules (`CostStop`) within `max_steps`.
     - `steps`: LM iterations per experiment.
     - `chi2_reduced`: per experiment, residual sum of squares / (n − p).
@@ -770,17 +774,36 @@ class PerExperimentFit:
     free: tuple[str, ...]
     mask: np.ndarray
     values: np.ndarray
+    std_error: np.ndarray
+    undetermined: np.ndarray
     converged: np.ndarray
     steps: np.ndarray
     chi2_reduced: np.ndarray
 
-    def per_experiment(self, name: str) -> list[float]:
-        """Estimates of `name` per experiment (NaN where it was not fitted or LM did not converge)."""
-        return [float(v) for v in self.values[:, self.free.index(name)]]
+    def per_experiment(self, name: str, *, determined_only: bool = False) -> list[float]:
+        """Estimates of `name` per experiment (NaN where it was not fitted or LM did not converge,
+        and with `determined_only` where it is undetermined)."""
+        k = self.free.index(name)
+        v = self.values[:, k]
+        return [float(x) for x in (np.where(self.undetermined[:, k] == "", v, np.nan) if determined_only else v)]
 
     def consistency(self, name: str) -> float:
-        """The paper's measure, std (ddof 1) / |mean| over the finite per-experiment estimates."""
-        return _consistency(self.values[:, self.free.index(name)])
+        """The paper's measure, std (ddof 1) / |mean| over the determined per-experiment estimates."""
+        return _consistency(self.per_experiment(name, determined_only=True))
+
+    def spread_over_std_error(self, name: str) -> float:
+        """How far the determined estimates of `name` scatter beyond their own standard errors:
+        √(Σ w (v − v̄_w)² / (n − 1)), w = 1/se², v̄_w their weighted mean; about 1 when the
+        experiments agree within their errors, well above 1 when the model's form makes records
+        disagree (or the errors are too small). NaN with fewer than 2."""
+        k = self.free.index(name)
+        v = np.asarray(self.per_experiment(name, determined_only=True))
+        ok = np.isfinite(v) & np.isfinite(self.std_error[:, k]) & (self.std_error[:, k] > 0)
+        if ok.sum() < 2:
+            return float("nan")
+        w = 1.0 / self.std_error[ok, k] ** 2
+        mean = np.sum(w * v[ok]) / np.sum(w)
+        return float(np.sqrt(np.sum(w * (v[ok] - mean) ** 2) / (ok.sum() - 1)))
 
 
 def fit_per_experiment(
@@ -797,6 +820,8 @@ def fit_per_experiment(
     cost_rtol: float = 1e-5,
     sigma=None,
     effects: Effects = Effects(),
+    se_block: float = 0.1,
+    se_rtol: float = 0.3,
 ) -> PerExperimentFit:
     """One trajectory-error LM fit per experiment, all by one compiled program (`for_each_experiment`:
     `lax.map` on the CPU, `vmap` on accelerators). On the CPU it is called on chunks of the batch
@@ -826,7 +851,9 @@ def fit_per_experiment(
 
     **Arguments:** as `fit_parameters`, plus `mask`: (experiments, len(free)) bool; `effects` are
     applied in every simulation and held at their values (for example the joint fit's fitted sensor
-    lags, `TrajectoryFit.effects`).
+    lags, `TrajectoryFit.effects`); `se_block` (s) as in `fit_parameters`: each estimate's standard
+    error is the block sandwich of its own record; `se_rtol`: an estimate whose standard error is
+    over this fraction of it (or infinite) is undetermined and left out of the consistency measure.
 
     (About 100 lines through this docstring; the body is one pass: slots per experiment, then the
     chunks that report progress, then the estimates read back.)
@@ -867,35 +894,64 @@ def fit_per_experiment(
             pad = chunk - n_real  # dummies: slots off
             idx = jnp.asarray(np.concatenate([slot_index[take], np.zeros((pad, n_slots), dtype=int)]))
             on = jnp.asarray(np.concatenate([slot_on[take], np.zeros((pad, n_slots))]))
-            z, result, reason, steps, r = jax.block_until_ready(
+            z, result, reason, steps, r, J, D = jax.block_until_ready(
                 run(jnp.zeros((chunk, n_slots)), (pmap, theta0, p0, effects, drive, part, sigma, idx, on)))
-            parts.append([np.asarray(x)[:n_real] for x in (z, steps, r)] + [_stop_reason(result, reason)[:n_real]])
+            parts.append([np.asarray(x)[:n_real] for x in (z, steps, r, J, D)] + [_stop_reason(result, reason)[:n_real]])
             if done is not None:
                 for _ in range(n_real):
                     done()
     back = np.argsort(order)  # the fits in the batch's order
-    z_final, steps, r, stop = (np.concatenate(xs)[back] for xs in zip(*parts))
+    z_final, steps, r, J, D, stop = (np.concatenate(xs)[back] for xs in zip(*parts))
     idx, on = np.asarray(slot_index), np.asarray(slot_on)
     ok = (stop != "max_steps") & active
     rss, n_obs = np.sum(r**2, axis=1), np.sum(r != 0.0, axis=1)
-    values = np.full(mask.shape, np.nan)
-    theta0_host = np.asarray(theta0)
+    dof = np.maximum(n_obs - mask.sum(axis=1), 1)
+    values, std_error = np.full(mask.shape, np.nan), np.full(mask.shape, np.nan)
+    undetermined = np.full(mask.shape, "", dtype=object)
+    theta0_host, time_host = np.asarray(theta0), np.asarray(batch.time)
+    n_time = time_host.shape[1]
     for e in np.flatnonzero(ok):
         theta_e = theta0_host.copy()  # `_full_theta` on the host (eagerly in JAX it compiled a scatter)
         np.add.at(theta_e, idx[e], on[e] * z_final[e])
         p = pmap.to_model(jnp.asarray(theta_e), p0)
+        # standard errors: the block sandwich in z (residual rows: channel, sample), then the delta method
+        blocks = np.broadcast_to(time_blocks(time_host[e:e + 1], se_block)[:, None, :], (1, r.shape[1] // n_time, n_time))
+        cov_z, _ = robust_covariance(J[e], r[e], blocks, lambda e=e: white_covariance(J[e], float(rss[e] / dof[e])))
+        se_slot = np.sqrt(np.clip(np.diag(D[e] @ cov_z @ D[e].T), 0, None))
+        # a slot along a null direction of JᵀJ (the pseudo-inverse gives it no variance) is not
+        # informed by the record at all: its standard error is infinite, not 0
+        JtJ = J[e].T @ J[e]
+        seen = np.diag(np.linalg.pinv(JtJ, rcond=1e-13) @ JtJ)
+        se_slot = np.where(seen > 1 - 1e-6, se_slot, np.inf)
+        for s_, k in enumerate(idx[e]):
+            if on[e, s_]:
+                std_error[e, k] = se_slot[s_]
         for k, name in enumerate(pmap.fields):
             if mask[e, k]:
                 values[e, k] = float(getattr(p, name))
-    dof = np.maximum(n_obs - mask.sum(axis=1), 1)
+                undetermined[e, k] = _per_experiment_undetermined(values[e, k], std_error[e, k], se_rtol)
     return PerExperimentFit(
         free=pmap.fields,
         mask=mask,
         values=values,
+        std_error=std_error,
+        undetermined=undetermined,
         converged=ok,
         steps=steps,
         chi2_reduced=rss / dof,
     )
+
+
+def _per_experiment_undetermined(value: float, se: float, se_rtol: float) -> str:
+    """Why one experiment's estimate does not count ("" when it does): its standard error is not
+    finite (the record does not inform it: on the shipped HD2 campaign one slow record's Stribeck
+    amplitude had run along such a direction to -1.2e5 N·m) or over `se_rtol` of the estimate (the
+    joint fit's rule for `undetermined`)."""
+    if not np.isfinite(se):
+        return f"the record does not inform it (a null direction of its Jacobian): the estimate {value:.3g} is arbitrary"
+    if value != 0 and se / abs(value) > se_rtol:
+        return f"standard error {se:.3g} is over {se_rtol:.0%} of the estimate {value:.3g}: the record does not pin it down"
+    return ""
 
 
 # --- compiled fit programs, built once per problem structure -------------------------------------
@@ -1080,7 +1136,7 @@ def _full_theta(z, theta0, idx, on):
 @functools.lru_cache(maxsize=32)
 def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol, cost_rtol, mesh):
     """The compiled per-experiment fits: `run(z0, (pmap, θ0, p0, effects, drive, batch, sigma, idx, on))` →
-    per experiment (z, result, stop rule, steps, residual). It holds no host callback, so JAX's
+    per experiment (z, result, stop rule, steps, residual, its Jacobian in z, d(slot values)/dz). It holds no host callback, so JAX's
     persistent cache keeps it; `fit_per_experiment` calls it on chunks of the batch and reports
     its progress between them (`_per_experiment_chunk`)."""
 
@@ -1102,7 +1158,14 @@ def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol,
             def one(z_e, exp, idx_e, on_e):
                 sol = optx.least_squares(residuals_lm, lm, z_e, (pmap_, theta0_d, p0_d, eff_d, drive_d, exp, sigma_d, idx_e, on_e),
                                          max_steps=max_steps, throw=False)
-                return sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], sol.state.inner.f_info.residual
+                f_info = sol.state.inner.f_info  # residual and Jacobian at the returned point
+
+                def slot_values(z):  # the physical value of each slot's parameter (SI)
+                    p = pmap_.to_model(_full_theta(z, theta0_d, idx_e, on_e), p0_d)
+                    return jnp.stack([getattr(p, k) for k in pmap_.fields])[idx_e]
+
+                return (sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], f_info.residual,
+                        f_info.jac.as_matrix(), jax.jacfwd(slot_values)(sol.value))
 
             # each fit's LM solves its own small linear systems: mapped on a multi-device CPU (see
             # `for_each_experiment`); on one device and on accelerators as the batching says

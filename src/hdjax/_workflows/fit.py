@@ -235,7 +235,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     t_sim = time.time() - t0
     per_exp, overall = _simulation_nrmse(traj, full, files, modes)
     truth = (dataset.truth or {}).get("parameters") if dataset.truth else None
-    params_json = _parameters_json(res, paper, per_fit, undetermined, truth)
+    params_json = _parameters_json(res, paper, per_fit, undetermined, truth, files)
 
     log("[4/4] report and figures")
     from .plots import fit_figures  # matplotlib loads only when figures are drawn
@@ -251,8 +251,13 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
         "consistency_note": (
             "`consistency` is the paper's measure, std/|mean| of per-experiment estimates. For fitted parameters it "
             "comes from one trajectory-error LM fit per experiment (`per_experiment`, aligned with "
-            "`fit.per_experiment`; null where the experiment does not inform the parameter or LM did not converge); "
-            "`paper_method` holds the paper's regressions and their consistency."
+            "`fit.per_experiment`; null where the experiment does not inform the parameter, LM did not converge, or "
+            "the estimate is undetermined: its own standard error (`per_experiment_std_error`, block sandwich of its "
+            "record) infinite or over 30 % of it; these are "
+            "listed with their reasons in `per_experiment_undetermined` and left out of `consistency`, whose count is "
+            "`consistency_n`); `spread_over_std_error` is how far the counted estimates scatter beyond their own "
+            "standard errors (about 1 when the experiments agree within them); `paper_method` holds the paper's "
+            "regressions and their consistency."
         ),
         "per_experiment_fit": None if per_fit is None else {
             "parameters": list(per_fit.free),
@@ -352,6 +357,7 @@ def _per_experiment_fits(paper, res, drive, full, files, opts, notes, log):
         max_steps=int(opts["trajectory"]["per_experiment_max_steps"]),
         cost_rtol=float(opts["trajectory"]["cost_rtol"]), step_se_tol=float(opts["trajectory"]["step_se_tol"]),
         effects=res.effects,  # the sensor lags held at the joint estimate
+        se_block=res.se_block,
     )
     t_per = time.time() - t0
     bad = [files[j] for j in range(n_exp) if informed[j] and not per_fit.converged[j]]
@@ -407,13 +413,14 @@ def _simulation_nrmse(traj, full, files, modes) -> tuple[list[dict], dict[str, f
     return per_exp, overall
 
 
-def _parameters_json(res, paper, per_fit, undetermined: dict[str, str], truth) -> dict[str, dict]:
+def _parameters_json(res, paper, per_fit, undetermined: dict[str, str], truth, files: list[str]) -> dict[str, dict]:
     """fit.json's `parameters`: per parameter the joint estimate (SI, with its unit) and standard
-    error, the consistency (the trajectory method's where per-experiment fits ran, else the
-    paper's), the paper method's numbers, why it is undetermined, and the truth where known."""
+    error, the consistency (the trajectory method's where per-experiment fits ran, over their
+    determined estimates, else the paper's), the paper method's numbers, why it is undetermined,
+    and the truth where known."""
     params_json = {}
     for k in PARAMETER_NAMES:
-        traj_per = per_fit.per_experiment(k) if per_fit is not None and k in per_fit.free else None
+        traj_per = per_fit.per_experiment(k, determined_only=True) if per_fit is not None and k in per_fit.free else None
         traj_cons = per_fit.consistency(k) if per_fit is not None and traj_per is not None else None
         entry = {
             "value": float(getattr(res.params, k)),
@@ -431,6 +438,16 @@ def _parameters_json(res, paper, per_fit, undetermined: dict[str, str], truth) -
                 "per_experiment": [_finite_or_none(v) for v in paper.per_experiment[k]],
             },
         }
+        if per_fit is not None and traj_per is not None:
+            col = per_fit.free.index(k)
+            entry["consistency_n"] = int(np.sum(np.isfinite(traj_per)))
+            entry["spread_over_std_error"] = _finite_or_none(per_fit.spread_over_std_error(k))
+            entry["per_experiment_std_error"] = [
+                _finite_or_none(se) if per_fit.undetermined[j, col] == "" else None for j, se in enumerate(per_fit.std_error[:, col])]
+            entry["per_experiment_undetermined"] = [
+                {"file": files[j], "value": _finite_or_none(per_fit.values[j, col]),
+                 "std_error": _finite_or_none(per_fit.std_error[j, col]), "reason": str(per_fit.undetermined[j, col])}
+                for j in range(len(files)) if per_fit.undetermined[j, col]]
         if k in undetermined:
             entry["undetermined"] = undetermined[k]
         if truth and k in truth:
@@ -576,8 +593,9 @@ def _report(r: dict, truth) -> str:
 
     for k, e in r["parameters"].items():
         traj_c = e["consistency"] if e.get("consistency_method") == "trajectory" else None
+        n_c = f" (n = {e['consistency_n']})" if traj_c is not None and "consistency_n" in e else ""
         row = (f"| {k} | {e['unit']} | {_fmt(e['value'])}{'' if e['fitted'] else ' (fixed)'} | {_fmt(e['std_error'])} | "
-               f"{pct(traj_c)} | {_fmt(e['paper_method']['value'])} | {pct(e['paper_method']['consistency'])} |")
+               f"{pct(traj_c)}{n_c} | {_fmt(e['paper_method']['value'])} | {pct(e['paper_method']['consistency'])} |")
         if truth:
             row += f" {_fmt(e.get('truth'))} |"
         lines.append(row)
@@ -599,6 +617,16 @@ def _report(r: dict, truth) -> str:
     if r["fit"].get("std_error_method") == "block_sandwich":
         lines.append(f"- std errors: robust to a misfit correlated over {r['fit']['std_error_block_s']:g} s (block sandwich); the white-noise "
                      "Gauss–Newton ones are in fit.json (`std_error_white`) and are smaller where the model is not exact")
+    left = {k: e["per_experiment_undetermined"] for k, e in r["parameters"].items() if e.get("per_experiment_undetermined")}
+    if left:
+        lines += ["", "## Per-experiment estimates left out of the consistency", "",
+                  "An estimate counts only where its own record determines it (standard error, block sandwich of the "
+                  "record, finite and at most 30 % of it); the others "
+                  "are in fit.json (`per_experiment_undetermined`).", ""]
+        for k, rows in left.items():
+            ex = "; ".join(f"{u['file']}: {_fmt(u['value'])} ({u['reason']})" for u in rows[:3])
+            lines.append(f"- **{k}**: {len(rows)} left out, {r['parameters'][k].get('consistency_n', 0)} counted. {ex}"
+                         + ("; …" if len(rows) > 3 else ""))
     und = {k: e["undetermined"] for k, e in r["parameters"].items() if "undetermined" in e}
     if und:
         lines += ["", "## Parameters the data do not determine", ""]
