@@ -171,6 +171,23 @@ def test_per_experiment_undetermined_rule():
     assert "does not inform" in why(0.3, float("nan"), 0.3)
 
 
+def test_a_stribeck_amplitude_above_the_coulomb_friction_gets_a_note():
+    """Ts + Tss1 < 0 puts eq. 9's friction of a sliding motor below zero near rest: the note gives
+    the slip speed under which it pushes with the motion, where eq. 9 crosses zero. The paper's
+    Table I for HD2 does this in the negative direction (0.033 - 0.045 N·m), not in the positive."""
+    from hdjax._workflows.fit import _friction_sign_notes
+    p, _ = hd2()
+    notes: list[str] = []
+    _friction_sign_notes(p, hdjax.Effects(), notes)
+    assert len(notes) == 1 and "Tsn + Tssn1" in notes[0] and "negative direction" in notes[0] and "nothing holds" in notes[0]
+    w0 = float(notes[0].split("under ")[1].split(" rad/s")[0])
+    friction = float(p.Tsn) + float(p.Tssn1) * np.exp(-((w0 / float(p.Tss2)) ** 2))
+    assert abs(friction) < 1e-3 * float(p.Tsn), friction
+    notes.clear()
+    _friction_sign_notes(eqx.tree_at(lambda m: m.Tssn1, p, -0.5 * p.Tsn), hdjax.Effects(), notes)
+    assert notes == []
+
+
 def test_stall_rule():
     assert _stalled(100.0, 100.0, 1e-5) and _stalled(100.0, 100.5, 1e-5)
     assert not _stalled(100.0, 99.0, 1e-5) and not _stalled(float("inf"), 1e9, 1e-5)

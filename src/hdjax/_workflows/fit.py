@@ -226,6 +226,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
     res, sel_pos, t_traj, profile = _joint_fit(full, modes, drive, p0, free_names, sim_fit, opts, notes, log)
     per_fit, t_per = _per_experiment_fits(paper, res, drive, full, files, opts, notes, log)
     _lm_notes(res, undetermined, notes)
+    _friction_sign_notes(res.params, res.effects, notes)
 
     log(f"[3/4] simulating all {len(exps)} experiments with the fitted parameters")
     t0 = time.time()
@@ -369,6 +370,30 @@ def _per_experiment_fits(paper, res, drive, full, files, opts, notes, log):
         )
     log(f"      {int(per_fit.converged[informed].sum())}/{int(informed.sum())} converged ({t_per:.1f} s)")
     return per_fit, t_per
+
+
+def _friction_sign_notes(params, effects, notes: list[str]) -> None:
+    """A note per direction where the fitted eq. 9 puts the friction of a sliding motor below zero
+    near rest (Ts + Tss1 < 0: the Stribeck term larger than the Coulomb term), with the slip speed
+    under which it pushes with the motion (Ts + Tss1·exp(−(ω/Tss2)²) = 0) and the torque that holds
+    the motor at rest. Measured on the shipped HD2 campaign (bench: stick–slip with breakaway):
+    Tsn + Tssn1 = −0.022 N·m, below zero under 0.068 rad/s, with the breakaway torque 0.045 N·m; the
+    paper's Table I itself gives HD2 Tsn + Tssn1 = −0.012 N·m (under 0.056 rad/s)."""
+    breakaway = effects.term("breakaway_friction") if "breakaway_friction" in effects.active else None
+    for d, word in (("p", "positive"), ("n", "negative")):
+        ts, tss1, tss2 = (float(getattr(params, k)) for k in (f"Ts{d}", f"Tss{d}1", "Tss2"))
+        if ts > 0 and ts + tss1 < 0:
+            w0 = tss2 * float(np.sqrt(np.log(-tss1 / ts)))
+            hold = (f"the breakaway torque {float(getattr(breakaway, f'breakaway_{d}')):.3g} N·m holds the motor at rest"
+                    if breakaway is not None else "nothing holds the motor at rest")
+            notes.append(
+                f"Ts{d} + Tss{d}1 = {ts + tss1:.3g} N·m: in the {word} direction eq. 9's friction of a sliding motor is "
+                f"below zero (it pushes with the motion) at slip speeds under {w0:.3g} rad/s; {hold}. A negative "
+                "Stribeck amplitude (friction rising from rest, as the paper found) is physical; one larger than the "
+                "Coulomb friction is not: the fit is taking up a low-speed friction that eq. 9 cannot express (for "
+                "example a sharp drop from breakaway to sliding), so read it as a shape, not a physical friction "
+                "(`hdjax diagnose` screens `low_speed_friction`). The paper's own Table I gives HD2 "
+                "Tsn + Tssn1 = 0.033 − 0.045 N·m < 0.")
 
 
 def _lm_notes(res, undetermined: dict[str, str], notes: list[str]) -> None:
