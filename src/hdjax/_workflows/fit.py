@@ -368,7 +368,10 @@ def _per_experiment_fits(paper, res, drive, full, files, opts, notes, log):
             f"{opts['trajectory']['per_experiment_max_steps']} steps for {', '.join(bad)} "
             "(`fit.trajectory.per_experiment_max_steps`); these are left out of the consistency measure."
         )
-    log(f"      {int(per_fit.converged[informed].sum())}/{int(informed.sum())} converged ({t_per:.1f} s)")
+    und = {k: int(np.sum(per_fit.undetermined[:, i] != "")) for i, k in enumerate(per_fit.free)}
+    und_text = ", ".join(f"{k} {n}" for k, n in und.items() if n)
+    log(f"      {int(per_fit.converged[informed].sum())}/{int(informed.sum())} converged ({t_per:.1f} s)"
+        + (f"; undetermined by their own record, left out of the consistency: {und_text}" if und_text else ""))
     return per_fit, t_per
 
 
