@@ -8,13 +8,34 @@ from collections.abc import Callable
 import numpy as np
 from jaxtyping import Float
 
+PINV_RCOND = 1e-13
+"""Relative cut-off of the pseudo-inverse of JᵀJ in these covariances (directions below it get no
+variance: see `null_directions`)."""
+
+UNDETERMINED_SE_RTOL = 0.3
+"""An estimate whose standard error is not finite or over this share of it is undetermined
+(`poorly_determined`): the joint fit's rule (`fit.json → undetermined`) and the per-experiment fits'."""
+
+
+def poorly_determined(value: float, se: float, rtol: float = UNDETERMINED_SE_RTOL) -> bool:
+    """True when the standard error `se` is not finite or over `rtol` of the estimate `value`."""
+    return bool(not np.isfinite(se) or (value != 0 and se / abs(value) > rtol))
+
+
+def null_directions(J: Float[np.ndarray, "residual free"], rcond: float = PINV_RCOND) -> np.ndarray:
+    """Per column of `J`, True where it lies along a null direction of JᵀJ (below `rcond`), which
+    the pseudo-inverse of these covariances leaves out: there it reports a variance of about 0
+    where the data carry no information, so such a standard error is infinite, not 0."""
+    JtJ = J.T @ J
+    return np.diag(np.linalg.pinv(JtJ, rcond=rcond) @ JtJ) <= 1 - 1e-6
+
 
 def white_covariance(J: Float[np.ndarray, "residual free"], chi2: float) -> Float[np.ndarray, "free free"]:
     """The Gauss–Newton covariance σ²(JᵀJ)⁻¹ (σ² = `chi2`, the reduced χ²): right only when the
     residuals are white."""
     JtJ = J.T @ J
     try:
-        cov = np.linalg.pinv(JtJ, rcond=1e-13) * chi2
+        cov = np.linalg.pinv(JtJ, rcond=PINV_RCOND) * chi2
     except np.linalg.LinAlgError:
         cov = np.full_like(JtJ, np.nan)
     return cov
@@ -52,7 +73,7 @@ def block_covariance(
     g = np.zeros((G, n_free))
     np.add.at(g, block_of, J[has] * r[has, None])
     try:
-        Hi = np.linalg.pinv(J.T @ J, rcond=1e-13)
+        Hi = np.linalg.pinv(J.T @ J, rcond=PINV_RCOND)
     except np.linalg.LinAlgError:
         return np.full((n_free, n_free), np.nan), G
     return Hi @ (g.T @ g) @ Hi * (G / max(G - 1, 1)), G

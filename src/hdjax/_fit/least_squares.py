@@ -47,7 +47,7 @@ from .._plant.sharding import (
 )
 from .._plant.simulate import Simulator, Trajectory, is_fixed_cost, simulate
 from .._workflows.progress import count_progress, lm_progress
-from .covariance import robust_covariance, time_blocks, white_covariance
+from .covariance import UNDETERMINED_SE_RTOL, null_directions, poorly_determined, robust_covariance, time_blocks, white_covariance
 from .lm import MarquardtLM
 from .paper import _consistency
 from .parameterisation import Entry, Parameterisation, parameterisation
@@ -821,7 +821,7 @@ def fit_per_experiment(
     sigma=None,
     effects: Effects = Effects(),
     se_block: float = 0.1,
-    se_rtol: float = 0.3,
+    se_rtol: float = UNDETERMINED_SE_RTOL,
 ) -> PerExperimentFit:
     """One trajectory-error LM fit per experiment, all by one compiled program (`for_each_experiment`:
     `lax.map` on the CPU, `vmap` on accelerators). On the CPU it is called on chunks of the batch
@@ -918,11 +918,7 @@ def fit_per_experiment(
         blocks = np.broadcast_to(time_blocks(time_host[e:e + 1], se_block)[:, None, :], (1, r.shape[1] // n_time, n_time))
         cov_z, _ = robust_covariance(J[e], r[e], blocks, lambda e=e: white_covariance(J[e], float(rss[e] / dof[e])))
         se_slot = np.sqrt(np.clip(np.diag(D[e] @ cov_z @ D[e].T), 0, None))
-        # a slot along a null direction of JᵀJ (the pseudo-inverse gives it no variance) is not
-        # informed by the record at all: its standard error is infinite, not 0
-        JtJ = J[e].T @ J[e]
-        seen = np.diag(np.linalg.pinv(JtJ, rcond=1e-13) @ JtJ)
-        se_slot = np.where(seen > 1 - 1e-6, se_slot, np.inf)
+        se_slot = np.where(null_directions(J[e]), np.inf, se_slot)  # the record does not inform these slots
         for s_, k in enumerate(idx[e]):
             if on[e, s_]:
                 std_error[e, k] = se_slot[s_]
@@ -949,7 +945,7 @@ def _per_experiment_undetermined(value: float, se: float, se_rtol: float) -> str
     joint fit's rule for `undetermined`)."""
     if not np.isfinite(se):
         return f"the record does not inform it (a null direction of its Jacobian): the estimate {value:.3g} is arbitrary"
-    if value != 0 and se / abs(value) > se_rtol:
+    if poorly_determined(value, se, se_rtol):
         return f"standard error {se:.3g} is over {se_rtol:.0%} of the estimate {value:.3g}: the record does not pin it down"
     return ""
 

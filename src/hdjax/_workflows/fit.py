@@ -10,6 +10,7 @@ import numpy as np
 
 from .._data.experiment import select_experiments, stack_experiments, take_experiments
 from .._data.load import Dataset
+from .._fit.covariance import UNDETERMINED_SE_RTOL, poorly_determined
 from .._fit.least_squares import (
     BREAKAWAY_GRID,
     BREAKAWAY_PATHS,
@@ -409,8 +410,9 @@ def _lm_notes(res, undetermined: dict[str, str], notes: list[str]) -> None:
         )
     for k in res.free:
         se, v = res.std_error[k], float(getattr(res.params, k))
-        if not np.isfinite(se) or (v != 0 and se / abs(v) > 0.3):
-            undetermined.setdefault(k, f"standard error {se:.3g} is over 30 % of the estimate {v:.3g}: the data do not pin it down")
+        if poorly_determined(v, se):
+            undetermined.setdefault(k, f"standard error {se:.3g} is over {100 * UNDETERMINED_SE_RTOL:.0f} % of the estimate {v:.3g}: "
+                                       "the data do not pin it down")
 
 
 def _simulation_nrmse(traj, full, files, modes) -> tuple[list[dict], dict[str, float]]:
