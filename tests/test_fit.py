@@ -163,6 +163,30 @@ def test_a_per_experiment_estimate_the_record_does_not_pin_down_is_left_out_of_t
     assert res.consistency("Tssn1") == hdjax._fit.paper._consistency(kept)
 
 
+def test_a_joint_fit_parameter_the_records_do_not_inform_has_an_infinite_standard_error(campaign, joint):
+    """The joint fit's covariance is a pseudo-inverse of JᵀJ: along a null direction it gave a
+    variance of about 0, so a parameter the records carry nothing about was reported as the best
+    determined one. Here one free record that only turns forward fits the negative-direction
+    Stribeck amplitude beside its Coulomb friction: that error is infinite (null in fit.json) and its
+    correlations NaN; the forward Coulomb friction keeps a finite error."""
+    p, drive, exps, _ = campaign
+    t = np.asarray(exps[0].time)
+    i = 0.5 + 0.2 * np.sin(2 * np.pi * 1.0 * t)
+    z0 = np.zeros_like(t)
+    tr = hdjax.simulate(p, drive, hdjax.make_experiment(t, i, z0, z0, mode="free", output_position=z0))
+    rng = np.random.default_rng(2)
+    forward = hdjax.make_experiment(t, i, np.asarray(tr.torque) + rng.normal(0, 0.1, len(t)),
+                                    np.asarray(tr.motor_velocity) + rng.normal(0, 0.03, len(t)), mode="free",
+                                    output_position=np.asarray(tr.output_position))
+    res = fit_parameters(joint.params, drive, hdjax.stack_experiments([forward]), free=("Tsp", "Tssn1"), max_steps=8)
+    assert np.isfinite(res.std_error["Tsp"]) and 0 < res.std_error["Tsp"] < 0.3 * float(res.params.Tsp), res.std_error
+    assert res.std_error["Tssn1"] == np.inf and res.std_error_white["Tssn1"] == np.inf, res.std_error
+    assert np.isnan(res.correlation[1, 0]) and np.isnan(res.correlation[0, 1]) and abs(res.correlation[0, 0] - 1.0) < 1e-12
+    # the two records of both directions inform it: finite
+    both = fit_parameters(joint.params, drive, hdjax.stack_experiments([exps[3], exps[5]]), free=("Tsp", "Tssn1"), max_steps=8)
+    assert all(np.isfinite(v) for v in both.std_error.values()), both.std_error
+
+
 def test_per_experiment_undetermined_rule():
     from hdjax._fit.least_squares import _per_experiment_undetermined as why
     assert why(-0.05, 0.01, 0.3) == ""

@@ -30,6 +30,12 @@ def null_directions(J: Float[np.ndarray, "residual free"], rcond: float = PINV_R
     return np.diag(np.linalg.pinv(JtJ, rcond=rcond) @ JtJ) <= 1 - 1e-6
 
 
+def standard_errors(cov: Float[np.ndarray, "free free"], J: Float[np.ndarray, "residual free"]) -> np.ndarray:
+    """The square roots of the diagonal of `cov` (a covariance of the fit with Jacobian `J`, in the
+    same parameters), infinite along the null directions of JᵀJ (`null_directions`)."""
+    return np.where(null_directions(J), np.inf, np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+
+
 def white_covariance(J: Float[np.ndarray, "residual free"], chi2: float) -> Float[np.ndarray, "free free"]:
     """The Gauss–Newton covariance σ²(JᵀJ)⁻¹ (σ² = `chi2`, the reduced χ²): right only when the
     residuals are white."""

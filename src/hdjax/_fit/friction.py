@@ -54,7 +54,7 @@ from .._model.friction_only import (
     friction_model_torque,
 )
 from .._model.paper import Smoothing, friction_basis
-from .covariance import inflated_covariance, robust_covariance, time_blocks
+from .covariance import inflated_covariance, robust_covariance, standard_errors, time_blocks
 from .lm import MarquardtLM
 from .parameterisation import Entry, Parameterisation, parameterisation, slots, vector_size
 
@@ -438,7 +438,7 @@ class FrictionProblem:
         records = [(fit.prediction[b][e, idx] - self.T[e, idx])[on[e]] for e in range(self.E)]
         cov, _ = robust_covariance(Jf, r, self.blocks()[:, idx].ravel(), lambda: inflated_covariance(Jf, r, records))
         se = np.full(N_PARAMS, np.nan)
-        se[free] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        se[free] = standard_errors(cov, Jf)
         return se
 
 
@@ -556,4 +556,4 @@ def fit_coulomb_viscous(problem: "FrictionProblem", w: np.ndarray) -> tuple[dict
     Aw, rw = A[on] * sw[:, None], (pred - problem.T)[on] * sw
     records = [(pred - problem.T)[e][on[e]] for e in range(problem.E)]
     cov, _ = robust_covariance(Aw, rw, problem.blocks()[on], lambda: inflated_covariance(Aw, rw, records))
-    return {"Tv": float(c[0]), "Tc": float(c[1])}, np.sqrt(np.clip(np.diag(cov), 0, None)), pred
+    return {"Tv": float(c[0]), "Tc": float(c[1])}, standard_errors(cov, Aw), pred

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.optimize
 
 from .._model.friction_only import dahl_recurrence
-from .covariance import inflated_covariance, robust_covariance
+from .covariance import inflated_covariance, robust_covariance, standard_errors
 from .friction import FrictionProblem, rms_stats
 
 LOW_SPEED_LIMIT = 0.01  # rad/s: records whose 98th percentile |ω| is below this use the low-speed law
@@ -188,7 +188,7 @@ def law_std_errors(problem: FrictionProblem, law: LowSpeedLaw, w: np.ndarray) ->
     r = (A[1] @ c - problem.T)[on]
     records = [(A[1] @ c - problem.T)[e][on[e]] for e in range(problem.E)]
     cov, _ = robust_covariance(J, r, problem.blocks()[on], lambda: inflated_covariance(J, r, records))
-    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    se = standard_errors(cov, J)
     out = {k: float(se[i]) for i, k in enumerate(lin[:2])}
     out["velocity_scale" if law.model == "regularised_coulomb" else "presliding_distance"] = law.scale * float(se[-1])
     if law.model == "dahl_presliding":

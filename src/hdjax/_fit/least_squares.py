@@ -263,7 +263,10 @@ class TrajectoryFit(eqx.Module):
     - `free_effects`: the dotted paths of the fitted effect parameters (e.g.
       "sensor_bandwidth.torque_lag"), after `free` in the vector, the Jacobian and `correlation`.
     - `std_error`: standard error per fitted parameter (SI; effect parameters by path), robust to a
-      misfit that is correlated in time (`std_error_method`, see `block_covariance`).
+      misfit that is correlated in time (`std_error_method`, see `block_covariance`); infinite for
+      a parameter that moves along a null direction of JᵀJ (`null_directions`: the records do not
+      inform it, e.g. a negative-direction Stribeck amplitude fitted on records that only turn
+      forward), whose correlations are then NaN.
     - `std_error_white`: the Gauss–Newton standard error, σ²(JᵀJ)⁻¹ with σ² the reduced χ²: right
       only when the residuals are white; on a bench where the model is not exact it is too small
       (`fit_parameters`'s `se_block`).
@@ -559,6 +562,11 @@ def fit_parameters(
     se_white = np.sqrt(np.clip(np.diag(dp @ cov_white @ dp.T), 0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(se, se)
+    # a parameter that moves along a null direction of JᵀJ is not informed by the records: the
+    # pseudo-inverse gave it a variance of about 0, its standard error is infinite
+    uninformed = np.any(dp[:, null_directions(J)] != 0, axis=1)
+    se, se_white = np.where(uninformed, np.inf, se), np.where(uninformed, np.inf, se_white)
+    corr[uninformed, :] = corr[:, uninformed] = np.nan
     params, fitted_effects = _models(jnp.asarray(theta), pmap, p0, emap, effects)
     return TrajectoryFit(
         params=params,
