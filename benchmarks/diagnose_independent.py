@@ -13,7 +13,7 @@ Usage: `python benchmarks/diagnose_independent.py [--n 20] [--first 0] [--json F
 [--seeds 5000,5004] [--log] [--no-readapt-after-form] [--one-stage-periodic] [--rodas3-jacobians]
 [--low-speed lugre] [--noise per_record] [--viscous-exponent 0.7] [--no-physical-sign] [--consistency-any-mode]
 [--negligible-record-loss 0] [--angle simulated|measured] [--substeps 4] [--jacobian-substeps 2]
-[--untouched-record-change 0] [--drift-trend-p 0]`.
+[--untouched-record-change 0] [--drift-trend-p 0] [--stiffness-trend-p 0]`.
 
 `--low-speed lugre` and `--noise per_record` draw the datasets from a variant of the bench (a LuGre
 low-speed law with a stiction bump instead of exact stick–slip; sensor noise scaled with each
@@ -157,6 +157,9 @@ def main() -> int:
     ap.add_argument("--drift-trend-p", type=float, default=None,
                     help="Significance.drift_trend_p (a drift is named also when its between-record trend test gives "
                          "at most this p-value; default: the package's, 0.01; 0: the held-out rules alone, before 2026-12-05)")
+    ap.add_argument("--stiffness-trend-p", type=float, default=None,
+                    help="Significance.stiffness_trend_p (a cubic stiffness is named also when the locked records' own "
+                         "K1 rises with their torsion at most at this p-value; default: the package's; 0: no such route)")
     ap.add_argument("--angle", default=None, choices=("simulated", "measured"),
                     help="the wave-generator angle of the periodic terms: the simulated one, or the measured one "
                          "(`Simulator.measured_angle`; default: the package's)")
@@ -176,6 +179,8 @@ def main() -> int:
         rule_options["untouched_record_change"] = args.untouched_record_change
     if args.drift_trend_p is not None:
         rule_options["drift_trend_p"] = args.drift_trend_p
+    if args.stiffness_trend_p is not None:
+        rule_options["stiffness_trend_p"] = args.stiffness_trend_p
     jacobian_solver = None if args.rodas3_jacobians else PLANT_W_METHOD
     jacobian_options = {} if args.jacobian_substeps is None else {"jacobian_substeps": args.jacobian_substeps}
     consistency_in = "any_acting" if args.consistency_any_mode else "largest_gain"

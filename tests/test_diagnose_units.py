@@ -215,10 +215,12 @@ def test_friction_rules_need_every_fold_up_to_four_and_all_but_one_of_five():
             assert FRICTION_RULES.consistent(improved / folds) == (improved >= need), (folds, improved)
     # the dynamic diagnosis differs from the field defaults only in `negligible_record_loss` (measured
     # on both benches, forty-fourth session), `untouched_record_change` (fifty-fifth) and
-    # `drift_trend_p` (fifty-sixth); the friction-only rule counts every fold and has no trend route
-    assert OUTPUT_ERROR_RULES == Significance(negligible_record_loss=0.02, untouched_record_change=0.02, drift_trend_p=0.01)
+    # `drift_trend_p` (fifty-sixth) and `stiffness_trend_p` (sixty-sixth); the friction-only rule
+    # counts every fold and has no trend route
+    assert OUTPUT_ERROR_RULES == Significance(negligible_record_loss=0.02, untouched_record_change=0.02, drift_trend_p=0.01,
+                                              stiffness_trend_p=0.01)
     assert FRICTION_RULES.min_relative_gain == 0.01 and FRICTION_RULES.negligible_record_loss == 0.0
-    assert FRICTION_RULES.drift_trend_p == 0.0
+    assert FRICTION_RULES.drift_trend_p == 0.0 and FRICTION_RULES.stiffness_trend_p == 0.0
 
 
 def test_forward_selection_names_the_best_significant_candidate_each_round():
@@ -656,3 +658,27 @@ def test_the_report_says_a_drift_named_by_its_trend_raises_the_held_out_error():
                     "candidates_by_round": [], "figures": []})
     assert "**thermal_drift**: held-out error rises by 4.1 %; named by its between-record trend (p = 0.0089)" in text
     assert "falls by -" not in text
+
+
+def test_amplitude_trend_reads_a_cubic_stiffness_from_the_records_own_K1():
+    """`amplitude_trend`: each locked record's own K1 step (−b/a of its normal equations) against the
+    share of the K3 column its K1 takes up (a_kj/a_kk): a cubic stiffness makes the records twisted
+    further stiffer. Eight records whose own K1 follows that exactly give the smallest p of the
+    8! orders and the amplitude in physical units; the falling sign (a softening) gives no evidence
+    (one-sided), and a column whose physical scale is negative reads the same parameter."""
+    from hdjax._discrepancy.loop import amplitude_trend
+
+    rng = np.random.default_rng(4)
+    a = rng.uniform(1.0, 3.0, size=8)  # each record's information about its K1
+    course = np.array([0.1, 0.9, 0.4, 0.2, 0.7, 1.3, 0.05, 0.6])  # ≈ 3⟨Δθ²⟩ of the record, column units
+    delta = 0.02  # the hidden K3 in column units
+    level = 0.3 + course * delta + 1e-7 * rng.normal(size=8)  # a common K1 offset plus the cubic's share
+    b, g = -level * a, course * a
+    p, amplitude = amplitude_trend(a, g, b, scale=5e4)
+    assert p == pytest.approx(1 / 40320) and amplitude == pytest.approx(5e4 * delta, rel=1e-3)
+    assert amplitude_trend(a, -g, b, scale=5e4)[0] > 0.99  # softening: not a cubic stiffness (K3 > 0)
+    p_neg, amplitude_neg = amplitude_trend(a, -g, b, scale=-5e4)  # the column counts K3 downwards
+    assert p_neg == pytest.approx(1 / 40320) and amplitude_neg == pytest.approx(5e4 * delta, rel=1e-3)
+    # levels that do not follow the course: no evidence
+    assert amplitude_trend(a, g, -(0.3 + 1e-3 * rng.normal(size=8)) * a, scale=5e4)[0] > 0.01
+    assert amplitude_trend(np.r_[a[:7], 0.0], g, b, scale=5e4) == (1.0, 0.0)  # a record without information

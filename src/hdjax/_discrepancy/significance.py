@@ -88,7 +88,9 @@ class Significance:
     between-record trend test (`drift_trend_test`: the records' own levels of the base parameter it
     changes against the drift's time course, start times shuffled) gives at most this p-value
     (0, the field's default: no such route; `OUTPUT_ERROR_RULES`: 0.01), unless its held-out fits
-    contradict the trend (`names_by_trend`)."""
+    contradict the trend (`names_by_trend`). `stiffness_trend_p`: the same route for a cubic
+    stiffness, the locked records' own K1 against their torsion (`names_by_amplitude_trend`; 0, the
+    field's default: none)."""
 
     min_relative_gain: float = 0.05
     min_improved_fraction: float = 0.75
@@ -103,6 +105,7 @@ class Significance:
     negligible_record_loss: float = 0.0
     untouched_record_change: float = 0.0
     drift_trend_p: float = 0.0
+    stiffness_trend_p: float = 0.0
 
     def __post_init__(self):
         if self.consistency_in not in ("largest_gain", "any_acting"):
@@ -165,6 +168,13 @@ class Significance:
         if not (self.drift_trend_p > 0 and trend_p <= self.drift_trend_p):
             return False
         return between_record_share is None or between_record_share >= 0.0
+
+    def names_by_amplitude_trend(self, trend_p: float, between_record_share: float) -> bool:
+        """An effect that changes a base parameter with each record's motion (`nonlinear_stiffness`:
+        K1 with the torsion; `hdjax._discrepancy.loop.AMPLITUDE_EFFECTS`) is named by its
+        between-record trend test (`amplitude_trend`) at p ≤ `stiffness_trend_p` (> 0) when its
+        held-out fits do not contradict it (between-record share not negative)."""
+        return self.stiffness_trend_p > 0 and trend_p <= self.stiffness_trend_p and between_record_share >= 0.0
 
     def drift_is_large(self, between_record_share: float | None) -> bool:
         """A drift term's between-record share (None: the candidate is no drift term) is at least
@@ -245,7 +255,8 @@ def drift_untestable(start_times) -> str | None:
 #: level (not moved to the benchmark): 36 of 40 named right, the thermal drifts of seeds 5009 and
 #: 5022 at p 0.0068 and 0.0089; every screening without a drift gave p ≥ 0.047; no finding on the
 #: clean datasets (2026-12-05, fifty-sixth session).
-OUTPUT_ERROR_RULES = Significance(negligible_record_loss=0.02, untouched_record_change=0.02, drift_trend_p=0.01)
+OUTPUT_ERROR_RULES = Significance(negligible_record_loss=0.02, untouched_record_change=0.02, drift_trend_p=0.01,
+                                  stiffness_trend_p=0.01)
 #: The friction-only diagnosis's rules (`hdjax.diagnose_friction` defaults).
 FRICTION_RULES = Significance(min_relative_gain=0.01, min_improved_fraction=0.8)
 

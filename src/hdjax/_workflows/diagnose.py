@@ -35,6 +35,7 @@ DEFAULTS = {
     "negligible_record_loss": OUTPUT_ERROR_RULES.negligible_record_loss,  # a held-out record made worse by at most this share does not count against
     "untouched_record_change": OUTPUT_ERROR_RULES.untouched_record_change,  # records moved by at most this share do not raise the consistency floor
     "drift_trend_p": OUTPUT_ERROR_RULES.drift_trend_p,  # a drift over the session named also at this between-record trend p-value (0: off)
+    "stiffness_trend_p": OUTPUT_ERROR_RULES.stiffness_trend_p,  # cubic stiffness named also at this p of the locked K1-torsion trend (0: off)
     "physical_sign": OUTPUT_ERROR_RULES.physical_sign,  # a signed effect (beta, mu, K3, Th, delay > 0, SPEC §4) only with that sign
     "measure_tachometer_lag": True,  # hold the tachometer's lag measured against the output encoder (not fitted)
 }
@@ -51,6 +52,7 @@ def _run_diagnose(paper, dataset, exps, files, opts, simulator, log):
         negligible_record_loss=float(opts["negligible_record_loss"]),
         untouched_record_change=float(opts["untouched_record_change"]),
         drift_trend_p=float(opts["drift_trend_p"]),
+        stiffness_trend_p=float(opts["stiffness_trend_p"]),
         physical_sign=bool(opts["physical_sign"]),
         measure_tachometer_lag=bool(opts["measure_tachometer_lag"]),
         base_steps=int(opts["base_steps"]),
@@ -153,7 +155,7 @@ def run_diagnose(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print
     out = pathlib.Path(out)
     opts = section_options(config, "diagnose", DEFAULTS)
     simulator = diagnosis_simulator(opts)  # a bad solver, substeps or tolerance is refused before any work
-    for key in ("untouched_record_change", "drift_trend_p"):  # and a bad share or level
+    for key in ("untouched_record_change", "drift_trend_p", "stiffness_trend_p"):  # and a bad share or level
         opts[key] = unit_share(opts[key], f"diagnose.{key}", " (0 turns its rule off)")
     drive, exps, files, _ = dataset.dynamic_part("diagnose", at_least=2)  # two: it holds experiments out
     fit_opts = fit_options(config)  # the `fit:` section, validated, with the fit command's defaults
