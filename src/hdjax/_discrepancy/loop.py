@@ -1992,9 +1992,9 @@ def _evidence_text(name, evidence, round_scores, finding, next_round_scores=None
            f"{', '.join(f'{100 * x:.1f} %' for x in g['fold_reductions'])}; "
            f"{', '.join(f'{k} tests {100 * x:.1f} %' for k, x in g['mode_reductions'].items())})")
     if "between_record_trend_p" in g and name in AMPLITUDE_EFFECTS:
-        txt += (f"; between records, the locked tests' own K1 rises with how far each is twisted (weighted trend p = "
-                f"{g['between_record_trend_p']:.4f} over every assignment of their torsions to the records, "
-                f"K3 {g['between_record_trend_amplitude']:.4g} N·m/rad³ from that trend alone)")
+        txt += (f"; between records, the trend of the locked tests' own K1 with how far each is twisted has weighted p = "
+                f"{g['between_record_trend_p']:.4f} over every assignment of their torsions to the records "
+                f"(K3 {g['between_record_trend_amplitude']:.4g} N·m/rad³ from that trend alone)")
         if g.get("held_out_rules_refused"):
             txt += (" and names it; the held-out rules alone would not have (" + ", ".join(g["held_out_rules_refused"])
                     + "): the base fit's one K1 takes up most of a cubic stiffness record by record, so what it leaves "
