@@ -682,3 +682,25 @@ def test_amplitude_trend_reads_a_cubic_stiffness_from_the_records_own_K1():
     # levels that do not follow the course: no evidence
     assert amplitude_trend(a, g, -(0.3 + 1e-3 * rng.normal(size=8)) * a, scale=5e4)[0] > 0.01
     assert amplitude_trend(np.r_[a[:7], 0.0], g, b, scale=5e4) == (1.0, 0.0)  # a record without information
+
+
+def test_evidence_of_a_finding_named_by_its_between_record_trend_says_which_trend():
+    """A cubic stiffness and a thermal drift named by their between-record trends (the held-out
+    rules refused them) say, in their evidence, what trend it was and why the held-out gain was
+    small: the locked tests' own K1 against their torsion, the free tests' viscous friction over the
+    session."""
+    from hdjax._discrepancy.loop import _evidence_text
+
+    gain = {"relative_reduction": 0.004, "fold_reductions": [0.005, 0.003], "mode_reductions": {"constrained": 0.010},
+            "between_record_trend_p": 0.0073, "between_record_trend_amplitude": 1.003e5,
+            "held_out_rules_refused": ["effect_size"]}
+    cubic = _evidence_text("nonlinear_stiffness", {}, {}, {"gain": gain}, None)
+    assert "locked tests' own K1 with how far each is twisted has weighted p = 0.0073" in cubic
+    assert "K3 1.003e+05 N·m/rad³" in cubic and "held-out rules alone would not have (effect_size)" in cubic
+    assert "takes up most of a cubic stiffness" in cubic and "viscous" not in cubic
+    drift = _evidence_text("thermal_drift", {}, {}, {"gain": dict(gain, between_record_trend_amplitude=0.0045)}, None)
+    assert "free tests' own viscous friction follows the drift's course" in drift and "+0.45 % of the viscous" in drift
+    assert "a drift of a few tenths of a percent" in drift and "K1" not in drift
+    # a cubic named by the held-out rules: the trend is reported, nothing said about refusals
+    named = dict(gain, held_out_rules_refused=[])
+    assert "would not have" not in _evidence_text("nonlinear_stiffness", {}, {}, {"gain": named}, None)

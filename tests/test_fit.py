@@ -135,6 +135,18 @@ def test_per_experiment_fits_give_the_trajectory_consistency(campaign, joint, mo
     np.testing.assert_array_equal(whole.steps, res.steps)
 
 
+def _forward_only_record(p, drive, t, *, seed: int):
+    """A free record whose current never reverses (the motor never slides backward), with the
+    campaign's sensor noise."""
+    i = 0.5 + 0.2 * np.sin(2 * np.pi * 1.0 * t)
+    z0 = np.zeros_like(t)
+    tr = hdjax.simulate(p, drive, hdjax.make_experiment(t, i, z0, z0, mode="free", output_position=z0))
+    rng = np.random.default_rng(seed)
+    return hdjax.make_experiment(t, i, np.asarray(tr.torque) + rng.normal(0, 0.1, len(t)),
+                                 np.asarray(tr.motor_velocity) + rng.normal(0, 0.03, len(t)), mode="free",
+                                 output_position=np.asarray(tr.output_position))
+
+
 def test_a_per_experiment_estimate_the_record_does_not_pin_down_is_left_out_of_the_consistency(campaign, joint):
     """An experiment whose record carries (almost) nothing about a parameter it fits gives an
     arbitrary estimate; with it the paper's consistency measure is meaningless (on the shipped HD2
@@ -142,14 +154,7 @@ def test_a_per_experiment_estimate_the_record_does_not_pin_down_is_left_out_of_t
     Here a free record that only turns forward fits the negative-direction Stribeck amplitude: its
     estimate is marked undetermined, with the reason, and the consistency is over the others."""
     p, drive, exps, _ = campaign
-    t = np.asarray(exps[0].time)
-    i = 0.5 + 0.2 * np.sin(2 * np.pi * 1.0 * t)  # always forward: never slides backward
-    z0 = np.zeros_like(t)
-    tr = hdjax.simulate(p, drive, hdjax.make_experiment(t, i, z0, z0, mode="free", output_position=z0))
-    rng = np.random.default_rng(1)
-    forward = hdjax.make_experiment(t, i, np.asarray(tr.torque) + rng.normal(0, 0.1, len(t)),
-                                    np.asarray(tr.motor_velocity) + rng.normal(0, 0.03, len(t)), mode="free",
-                                    output_position=np.asarray(tr.output_position))
+    forward = _forward_only_record(p, drive, np.asarray(exps[0].time), seed=1)
     batch = hdjax.stack_experiments([exps[3], exps[5], forward])
     free = ("Tsp", "Tssn1")
     mask = np.array([[True, True], [True, True], [True, True]])
@@ -170,14 +175,7 @@ def test_a_joint_fit_parameter_the_records_do_not_inform_has_an_infinite_standar
     Stribeck amplitude beside its Coulomb friction: that error is infinite (null in fit.json) and its
     correlations NaN; the forward Coulomb friction keeps a finite error."""
     p, drive, exps, _ = campaign
-    t = np.asarray(exps[0].time)
-    i = 0.5 + 0.2 * np.sin(2 * np.pi * 1.0 * t)
-    z0 = np.zeros_like(t)
-    tr = hdjax.simulate(p, drive, hdjax.make_experiment(t, i, z0, z0, mode="free", output_position=z0))
-    rng = np.random.default_rng(2)
-    forward = hdjax.make_experiment(t, i, np.asarray(tr.torque) + rng.normal(0, 0.1, len(t)),
-                                    np.asarray(tr.motor_velocity) + rng.normal(0, 0.03, len(t)), mode="free",
-                                    output_position=np.asarray(tr.output_position))
+    forward = _forward_only_record(p, drive, np.asarray(exps[0].time), seed=2)
     res = fit_parameters(joint.params, drive, hdjax.stack_experiments([forward]), free=("Tsp", "Tssn1"), max_steps=8)
     assert np.isfinite(res.std_error["Tsp"]) and 0 < res.std_error["Tsp"] < 0.3 * float(res.params.Tsp), res.std_error
     assert res.std_error["Tssn1"] == np.inf and res.std_error_white["Tssn1"] == np.inf, res.std_error

@@ -1991,22 +1991,22 @@ def _evidence_text(name, evidence, round_scores, finding, next_round_scores=None
            f"squared error of the held-out experiments by {100 * abs(g['relative_reduction']):.1f} % (halves: "
            f"{', '.join(f'{100 * x:.1f} %' for x in g['fold_reductions'])}; "
            f"{', '.join(f'{k} tests {100 * x:.1f} %' for k, x in g['mode_reductions'].items())})")
-    if "between_record_trend_p" in g and name in AMPLITUDE_EFFECTS:
-        txt += (f"; between records, the trend of the locked tests' own K1 with how far each is twisted has weighted p = "
-                f"{g['between_record_trend_p']:.4f} over every assignment of their torsions to the records "
-                f"(K3 {g['between_record_trend_amplitude']:.4g} N·m/rad³ from that trend alone)")
+    if "between_record_trend_p" in g:
+        if name in AMPLITUDE_EFFECTS:
+            txt += (f"; between records, the trend of the locked tests' own K1 with how far each is twisted has weighted "
+                    f"p = {g['between_record_trend_p']:.4f} over every assignment of their torsions to the records "
+                    f"(K3 {g['between_record_trend_amplitude']:.4g} N·m/rad³ from that trend alone)")
+            why_small = ("the base fit's one K1 takes up most of a cubic stiffness record by record, so what it leaves in "
+                         "each record's residual is small")
+        else:
+            txt += (f"; between records, the free tests' own viscous friction follows the drift's course over the session "
+                    f"(weighted trend p = {g['between_record_trend_p']:.4f} over every ordering of their start times, "
+                    f"amplitude {100 * g['between_record_trend_amplitude']:+.2f} % of the viscous friction)")
+            why_small = ("a drift of a few tenths of a percent changes every record's fit little, so its held-out gain is "
+                         "small and one record's misfit can outweigh it")
         if g.get("held_out_rules_refused"):
-            txt += (" and names it; the held-out rules alone would not have (" + ", ".join(g["held_out_rules_refused"])
-                    + "): the base fit's one K1 takes up most of a cubic stiffness record by record, so what it leaves "
-                    "in each record's residual is small")
-    elif "between_record_trend_p" in g:
-        txt += (f"; between records, the free tests' own viscous friction follows the drift's course over the session "
-                f"(weighted trend p = {g['between_record_trend_p']:.4f} over every ordering of their start times, "
-                f"amplitude {100 * g['between_record_trend_amplitude']:+.2f} % of the viscous friction)")
-        if g.get("held_out_rules_refused"):
-            txt += (" and names it; the held-out rules alone would not have (" + ", ".join(g["held_out_rules_refused"])
-                    + "): a drift of a few tenths of a percent changes every record's fit little, so its held-out gain "
-                    "is small and one record's misfit can outweigh it")
+            txt += (" and names it; the held-out rules alone would not have ("
+                    + ", ".join(g["held_out_rules_refused"]) + "): " + why_small)
     if name in PERIODIC:
         txt += (f"; residual order spectra peak at orders {evidence['candidate_orders']} per wave-generator turn"
                 f" (orders screened for {name}: {evidence['candidate_orders_per_effect'].get(name)})")
