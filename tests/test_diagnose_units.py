@@ -215,10 +215,10 @@ def test_friction_rules_need_every_fold_up_to_four_and_all_but_one_of_five():
             assert FRICTION_RULES.consistent(improved / folds) == (improved >= need), (folds, improved)
     # the dynamic diagnosis differs from the field defaults only in `negligible_record_loss` (measured
     # on both benches, forty-fourth session), `untouched_record_change` (fifty-fifth) and
-    # `drift_trend_p` (fifty-sixth); the cubic stiffness's trend route (`stiffness_trend_p`) is opt-in
-    # (sixty-sixth session: a false cubic on one of 21 datasets run); the friction-only rule counts
-    # every fold and has no trend route
-    assert OUTPUT_ERROR_RULES == Significance(negligible_record_loss=0.02, untouched_record_change=0.02, drift_trend_p=0.01)
+    # `drift_trend_p` (fifty-sixth) and `stiffness_trend_p` (sixty-sixth); the friction-only rule
+    # counts every fold and has no trend route
+    assert OUTPUT_ERROR_RULES == Significance(negligible_record_loss=0.02, untouched_record_change=0.02, drift_trend_p=0.01,
+                                              stiffness_trend_p=0.01)
     assert FRICTION_RULES.min_relative_gain == 0.01 and FRICTION_RULES.negligible_record_loss == 0.0
     assert FRICTION_RULES.drift_trend_p == 0.0 and FRICTION_RULES.stiffness_trend_p == 0.0
 

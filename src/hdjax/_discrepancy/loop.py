@@ -1007,7 +1007,7 @@ def _judge(res_before: np.ndarray, res_after: np.ndarray, folds: np.ndarray, mod
                 refused_by=refused_by, best_experiment=int(np.flatnonzero(in_mode)[best]),
                 improved_count=counts[acting][1], counted_count=counts[acting][2], mode_count=int(d_m.size), chance=chance,
                 delta_chi2_without_best_experiment=dchi_rest, mode_gains=mode_gains,
-                harm_ratio=harm, per_experiment_gain=rel.tolist(),
+                harm_ratio=harm, per_experiment_gain=rel.tolist(), per_experiment_moved=(moved / e_before).tolist(),
                 mode_delta_chi2=mode_dchi, improved_fraction=improved, acting_mode=acting,
                 acting_mode_gain_without_best=gain_rest, contradicted_by=int(worst) if contradicted else None,
                 significant=significant)
@@ -1231,8 +1231,8 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
         drift = share.get(c)
         if drift is not None:
             s["between_record_share"] = drift
-        trend_named = ((c in trend and rule.names_by_trend(trend[c][0], drift))
-                       or (c in amp_trend and rule.names_by_amplitude_trend(amp_trend[c][0], amp_share[c])))
+        amp_named = c in amp_trend and rule.names_by_amplitude_trend(amp_trend[c][0], amp_share[c])
+        trend_named = (c in trend and rule.names_by_trend(trend[c][0], drift)) or amp_named
         if c in amp_trend:
             s["trend_p_value"], s["trend_amplitude"] = amp_trend[c]
             s["between_record_share"] = amp_share[c]
@@ -1257,6 +1257,16 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
                 if rule.physical_sign and not s["physical_sign"]:
                     s["significant"] = False
                     s["refused_by"] = s["refused_by"] + ["physical_sign"]
+            if amp_named and not s["significant"]:
+                # and a term that the trend would name must move the held-out records it acts on:
+                # at least two by more than `untouched_record_change` of their error (the consistency
+                # rule's floor). Default-bench seed 5014 (a kinematic error [2]; sixty-sixth session):
+                # a cubic at p 0.0020 moved no locked record by over 1 %, the hidden ones moved 3–5
+                moved = np.asarray(s["per_experiment_moved"])[loop.modes == AMPLITUDE_EFFECTS[c][1]]
+                s["trend_moved_count"] = n_moved = int(np.sum(moved > rule.untouched_record_change))
+                if n_moved < 2:
+                    trend_named = False
+                    s["trend_too_small"] = True
             if trend_named and not s["significant"]:
                 # the drift's own test: the records' levels follow its time course beyond what
                 # shuffled start times give (`drift_trend_test`); the held-out rules' verdict is kept
@@ -1276,6 +1286,8 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
             + (f" (trend p {s['trend_p_value']:.4f}, amplitude {s['trend_amplitude']:+.4f})" if "trend_p_value" in s else "")
             + (" trend contradicted by the held-out fits (negative share)" if s.get("trend_contradicted") else "")
             + (" named by its between-record trend" if s.get("named_by") == "between_record_trend" else "")
+            + (f" (its trend not named: it moves {s['trend_moved_count']} held-out records by over "
+               f"{100 * rule.untouched_record_change:g} %)" if s.get("trend_too_small") else "")
             + (f" contradicted by held-out experiment {s['contradicted_by']}" if s.get("contradicted_by") is not None else "")
             + (f" fitted with the unphysical sign of {PHYSICAL_SIGN[c][0]}" if s.get("physical_sign") is False else "")
             + (f" (step fraction {s['step_fraction']:g})" if "step_fraction" in s else "")
