@@ -146,10 +146,14 @@ class Significance:
         if self.untouched_record_change > 0.0 and moved is not None:
             # the floor is the records the candidate moves at all (at least two): an effect that acts
             # only where the input is fast (an input delay) is judged on those records
-            touched = int(np.sum(np.asarray(moved, dtype=float) > self.untouched_record_change * before))
-            floor = min(floor, max(touched, 2))
+            floor = min(floor, max(self.records_moved(moved, before), 2))
         counted = max(improved + against, floor)
         return (improved / counted if counted else 0.0), improved, counted
+
+    def records_moved(self, moved: np.ndarray, before: np.ndarray) -> int:
+        """How many held-out experiments a candidate moves by more than `untouched_record_change` of
+        their whitened squared error `before` (`moved`: ‖r_after − r_before‖² each)."""
+        return int(np.sum(np.asarray(moved, dtype=float) > self.untouched_record_change * np.asarray(before, dtype=float)))
 
     def contradicted(self, loss: float, loss_fraction: float, k: int) -> bool:
         """One held-out experiment lost `loss` (Δχ², sensor-noise units), `loss_fraction` of its own
