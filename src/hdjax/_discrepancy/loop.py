@@ -1182,6 +1182,11 @@ ACTS_ON_BOTH_MODES = frozenset({"input_delay"})
 SCREENED_WITH = {"torque_sensor_ripple": "sensor_offset.torque_offset"}
 
 
+def _companion_columns(loop: _Loop, cand_idx: dict, c: str) -> list[int]:
+    """The columns among candidate `c`'s that belong to another term: those `SCREENED_WITH` gave it."""
+    return [j for j in cand_idx[c] if loop.cols[j - loop.n_base].effect != c]
+
+
 def _rule_for(c: str, rule: Significance) -> Significance:
     """The rules candidate `c` is judged by. A model_form adjustment (an offset, a lag) fitted on
     the other records may miss one record's own: the per-record rule (`MAX_RECORD_LOSS`) judges
@@ -1242,15 +1247,14 @@ def _in_sample_step_fraction(loop: _Loop, ff: _FoldFits, chosen_idx: list[int], 
 
 
 def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], cand_idx: dict, folds: np.ndarray, *,
-            n_simulated: int, rule: Significance, log, simulate_all: bool = False, companions: dict | None = None):
+            n_simulated: int, rule: Significance, log, simulate_all: bool = False):
     """Screen the candidates `pool`: rank them by the linearised held-out error, simulate the held-out
     fits of the best `n_simulated` predicted above half the threshold (`simulate_all`: of every
-    candidate, whatever its prediction), and judge those. A candidate with `companions` (its columns
-    among `cand_idx[c]` that belong to a model_form term, `SCREENED_WITH`) that passes is judged again
-    against the held-out fits with those columns alone, and must pass there too. Returns the
+    candidate, whatever its prediction), and judge those. A candidate with companion columns (among
+    `cand_idx[c]`, of a model_form term: `SCREENED_WITH`) that passes is judged again against the
+    held-out fits with those columns alone, and must pass there too. Returns the
     scores per candidate, the held-out residuals without any candidate (raw), and those with each
     simulated one (raw)."""
-    companions = companions or {}
     zs_before, pred_before = ff.steps(chosen_idx)
     res_before, raw_before = loop.simulate_each(zs_before)
     e_before = _per_exp(res_before)
@@ -1290,10 +1294,11 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
                 if rule.physical_sign and not s["physical_sign"]:
                     s["significant"] = False
                     s["refused_by"] = s["refused_by"] + ["physical_sign"]
-            if c in companions and s["significant"]:
+            comp = _companion_columns(loop, cand_idx, c)
+            if comp and s["significant"]:
                 # and what it adds to its companion columns fitted alone must pass the same rules
-                res_comp, _ = loop.simulate_each(ff.steps(chosen_idx + companions[c])[0])
-                over = _judge(res_comp, res_after, folds, loop.modes, s["k"] - len(companions[c]), _rule_for(c, rule))
+                res_comp, _ = loop.simulate_each(ff.steps(chosen_idx + comp)[0])
+                over = _judge(res_comp, res_after, folds, loop.modes, s["k"] - len(comp), _rule_for(c, rule))
                 s["over_companion"] = {"gain": over["gain"], "mode_gains": over["mode_gains"], "refused_by": over["refused_by"]}
                 if not over["significant"]:
                     s["significant"] = False
@@ -1325,7 +1330,7 @@ def _screen(loop: _Loop, ff: _FoldFits, pool: list[str], chosen_idx: list[int], 
             + (f" (trend p {s['trend_p_value']:.4f}, amplitude {s['trend_amplitude']:+.4f})" if "trend_p_value" in s else "")
             + (" trend contradicted by the held-out fits (negative share)" if s.get("trend_contradicted") else "")
             + (" named by its between-record trend" if s.get("named_by") == "between_record_trend" else "")
-            + (f" (over its companion {', '.join(loop.cols[j - loop.n_base].path for j in companions[c])} alone: "
+            + (f" (over its companion {', '.join(loop.cols[j - loop.n_base].path for j in _companion_columns(loop, cand_idx, c))} alone: "
                f"{s['over_companion']['gain']:+.3f}" + (f", refused by {', '.join(s['over_companion']['refused_by'])}"
                                                        if s["over_companion"]["refused_by"] else "") + ")"
                if "over_companion" in s else "")
@@ -1518,7 +1523,7 @@ def _describe_items(findings: list[dict], form_items: list[dict], final_effects:
                              f"into the velocity with opposite phase in the two directions of motion)")
         comp = f.pop("_companion", None)
         if comp is not None:
-            f["evidence"] += (f"; fitted together with {comp} (model_form sensor_offset, refused alone in round 1): in the "
+            f["evidence"] += (f"; fitted together with {comp} (model_form {comp.split('.')[0]}, refused alone in round 1): in the "
                               f"records that turn the wave generator through only part of a cycle the two explain each other's "
                               f"misfit; against that offset alone it gains {100 * f['gain']['over_companion']['gain']:.1f} % "
                               f"held out")
@@ -1581,8 +1586,6 @@ class _Outcome:
     form_items: list = dataclasses.field(default_factory=list)
     rounds: list = dataclasses.field(default_factory=list)
     base_res: np.ndarray | None = None
-    #: candidate → its columns that belong to a model_form term not adopted in round 1 (`SCREENED_WITH`)
-    companions: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1677,7 +1680,7 @@ class _GreedyRounds:
         fixed = held_in_folds(out.adopted, self.cand_idx, loop.cols, loop.n_base)
         scores, raw_before, raw_after_of = _screen(loop, ff, pool, [j for j in self.accepted_idx() if j not in fixed],
                                                    self.cand_idx, o.folds, n_simulated=n_simulated, rule=o.rule,
-                                                   log=self.log, simulate_all=simulate_all, companions=out.companions)
+                                                   log=self.log, simulate_all=simulate_all)
         if out.base_res is None:
             out.base_res = raw_before
         out.rounds.append(scores)
@@ -1695,10 +1698,10 @@ class _GreedyRounds:
             _accept(self.loop, self.J, self.sel, [j for c in accept for j in self.cand_idx[c]])
             self.log(f"  accepted {', '.join(accept)}{note}")
             out.adopted.extend(accept)
-            for c, comp in list(out.companions.items()):  # a companion adopted itself (`form_competes`) is no longer one
-                if self.loop.cols[comp[0] - self.loop.n_base].effect in accept:
-                    self.cand_idx[c] = [j for j in self.cand_idx[c] if j not in comp]
-                    out.companions.pop(c)
+            for c in self.cand_idx:  # a companion adopted itself (`form_competes`) is no longer one
+                own = [j for j in self.cand_idx[c] if j not in _companion_columns(self.loop, self.cand_idx, c)
+                       or self.loop.cols[j - self.loop.n_base].effect not in accept]
+                self.cand_idx[c] = own
         return accept
 
     def adopt_form(self, form_pool: list[str], simulate_all: bool = False) -> list[str]:
@@ -1757,7 +1760,7 @@ class _GreedyRounds:
         out.chosen.append(best)
         out.findings.append(_finding(self.loop, best, scores[best], self.raw_before, self.raw_after_of[best],
                                      len(out.rounds) - 1))
-        comp = out.companions.get(best)
+        comp = _companion_columns(self.loop, self.cand_idx, best)
         if comp:
             # its companion columns are in the model now: their term is adopted with those columns
             # only, reported as a model_form item with the finding's held-out figures
@@ -1767,8 +1770,6 @@ class _GreedyRounds:
             item = _form_item(self.loop, form, scores[best], self.raw_before, {form: self.raw_after_of[best]}, len(out.rounds) - 1)
             out.form_items.append(item | {"_with": best})
             out.findings[-1]["_companion"] = SCREENED_WITH[best]
-            for c in [c for c in out.companions if out.companions[c] == comp]:
-                out.companions.pop(c)
             self.log(f"  adopted {', '.join(self.loop.cols[j - self.loop.n_base].path for j in comp)} with {best}")
 
     def attach_companions(self, remaining: list[str]) -> None:
@@ -1782,7 +1783,6 @@ class _GreedyRounds:
             comp = [loop.n_base + j for j, col in enumerate(loop.cols) if col.path == path]
             if comp and all(j in self.sel for j in comp):
                 self.cand_idx[c] = self.cand_idx[c] + comp
-                out.companions[c] = comp
                 self.log(f"diagnose: {c} screened with {path} ({form} was not adopted; the two explain each other)")
 
     def run(self, remaining: list[str]) -> None:
