@@ -208,6 +208,7 @@ def main() -> int:
         truth, found = hidden(case["effects"]), named(d)
         right = set(found) == set(truth) and all(truth[k] == found[k] for k in truth if k in PERIODIC)
         row = {"seed": case["seed"], "drive": case["drive"], "hidden": truth, "named": found, "right": right,
+               "named_parameters": {f["effect"]: f.get("parameters") for f in d.findings},
                "model_form": [m["assumption"] for m in d.model_form], "time_s": round(dt, 1),
                "model_form_adjustment": {m["assumption"]: m.get("adjustment") for m in d.model_form},
                "snr": {k: round(v["snr"], 2) for k, v in case["effects"].items()},
