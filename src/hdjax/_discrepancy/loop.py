@@ -128,6 +128,7 @@ import dataclasses
 import math
 import time
 import typing
+from collections.abc import Sequence
 
 import diffrax as dfx
 import equinox as eqx
@@ -1432,7 +1433,7 @@ def near_misses(scores: dict[str, dict], rule: Significance, labels: list[str], 
     return out
 
 
-def _accept(loop: _Loop, J: np.ndarray, sel: list[int], new_cols: list[int], refit_cols: typing.Sequence[int] = (), *,
+def _accept(loop: _Loop, J: np.ndarray, sel: list[int], new_cols: list[int], refit_cols: Sequence[int] = (), *,
             two_stage: bool = True, log=lambda *_: None) -> None:
     """Start accepted terms (`new_cols`) at their all-experiment Gauss–Newton fit (their columns
     only), where that lowers the simulated error; else at the all-experiment counterpart of the
