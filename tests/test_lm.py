@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+import pytest
 
 from hdjax import MarquardtLM
 
@@ -66,3 +67,49 @@ def test_composes_with_cost_stop_like_optimistix_levenberg_marquardt():
     assert jnp.allclose(sol.value, jnp.linalg.lstsq(A, b)[0], atol=2e-3)
     r, J = _final_residual_and_jacobian(sol)
     assert jnp.allclose(r, fn(sol.value, None)) and jnp.allclose(J, A, atol=1e-2)
+
+
+def _cliff_residuals(y, args):
+    """A line fit toward y = 2 with a jump of the cost at y = 0.7 that no derivative sees (as a
+    simulated motor that sticks at a reversal once a parameter crosses a threshold): 200 residuals
+    of noise 0.1, so the standard error of y is about s/√200 with s² the reduced χ²."""
+    noise = args
+    jump = jax.lax.stop_gradient(jnp.where(y[0] > 0.7, 10.0, 0.0))
+    return (y[0] - 2.0) + noise + jump
+
+
+def test_shrinking_on_rejection_reaches_a_jump_of_the_cost_instead_of_stalling_at_the_start():
+    """The Gauss–Newton step from y = 0 crosses the jump at 0.7 and is rejected. Nielsen's λ·ν
+    leaves that step almost unchanged for three or four trials (λ from 1e-3), so `CostStop`'s
+    stall rule (three evaluations without a lower cost) ends the fit at its start: on the shipped
+    HD2 campaign ten per-experiment fits stopped so, 1.5–29 standard errors from their optimum.
+    With `shrink_on_reject` each rejection halves the trial, and `reject_se_tol` stops once a trial
+    shorter than 0.1 standard errors is rejected: the fit ends within 0.1 standard errors below
+    the jump."""
+    from hdjax import CostStop
+
+    noise = jnp.asarray(0.1 * np.random.default_rng(3).standard_normal(200))
+    y0 = jnp.zeros(1)
+    plain = optx.least_squares(_cliff_residuals, CostStop(MarquardtLM()), y0, noise, max_steps=40, throw=False)
+    assert float(plain.value[0]) == 0.0 and int(plain.state.reason) == 2  # cost stalled at the start
+
+    solver = CostStop(MarquardtLM(shrink_on_reject=True, reject_se_tol=0.1))
+    sol = optx.least_squares(_cliff_residuals, solver, y0, noise, max_steps=40, throw=False)
+    r = _cliff_residuals(sol.value, noise)
+    se = float(jnp.sqrt(jnp.sum(r**2) / (r.size - 1)) / np.sqrt(r.size))  # J = 1: s/√n
+    y = float(sol.value[0])
+    assert sol.result == optx.RESULTS.successful and int(sol.state.reason) == 0  # stopped by the solver's own rule
+    assert 0.7 - 0.1 * se <= y <= 0.7, (y, se)
+    assert int(sol.stats["num_steps"]) <= 20
+
+
+@pytest.mark.parametrize("shrink", [False, True])
+def test_shrink_on_reject_keeps_the_optimum_of_a_smooth_problem(shrink):
+    """On a smooth, badly scaled problem both ways reach optimistix's optimum."""
+    args = _data()
+    y0 = jnp.array([100.0, 0.0, 0.0])
+    ours = optx.least_squares(_decay_residuals, MarquardtLM(shrink_on_reject=shrink, reject_se_tol=0.1 * shrink), y0,
+                              args, max_steps=200)
+    ref = optx.least_squares(_decay_residuals, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-12), y0, args,
+                             max_steps=2000)
+    np.testing.assert_allclose(ours.value, ref.value, rtol=1e-6, atol=1e-8)
