@@ -20,7 +20,13 @@ import hdjax
 import hdjax._fit.least_squares
 from hdjax import CostStop, block_covariance, fit_parameters, fit_per_experiment, identify_paper, load_dataset, write_dataset
 from hdjax._fit.covariance import robust_covariance
-from hdjax._fit.least_squares import _final_residual_and_jacobian, _stalled, _state_residual_and_jacobian, _stepped_least_squares
+from hdjax._fit.least_squares import (
+    STOP_REASONS,
+    _final_residual_and_jacobian,
+    _stalled,
+    _state_residual_and_jacobian,
+    _stepped_least_squares,
+)
 from hdjax.fit import run_fit
 from helpers import hd2, host_callbacks
 
@@ -89,6 +95,9 @@ def test_fit_workflow_writes_spec_keys(campaign, tmp_path):
     # the trajectory method's consistency comes from per-experiment fits, reported per experiment
     pf = d["per_experiment_fit"]
     assert pf is not None and len(pf["converged"]) == 3
+    # how each fit ended, per experiment (a cost stall is not an optimum: 2026-12-07)
+    assert len(pf["lm_stop_reason"]) == 3
+    assert all(r is None or r in STOP_REASONS + ("max_steps",) for r in pf["lm_stop_reason"])
     assert d["parameters"]["K1"]["consistency_method"] == "trajectory"
     assert len(d["parameters"]["K1"]["per_experiment"]) == 3
     k1 = d["parameters"]["K1"]

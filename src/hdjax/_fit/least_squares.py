@@ -777,6 +777,8 @@ class PerExperimentFit:
     - `converged`: per experiment, LM stopped by one of its rules (`CostStop`) within `max_steps`.
     - `steps`: LM iterations per experiment.
     - `chi2_reduced`: per experiment, residual sum of squares / (n − p).
+    - `stop_reason`: per experiment, the rule that ended its LM fit (`fit_parameters`' `stop_reason`:
+      "tolerance", "gauss_newton_step_small", "cost_stalled", "predicted_gain_small" or "max_steps").
     """
 
     free: tuple[str, ...]
@@ -787,6 +789,7 @@ class PerExperimentFit:
     converged: np.ndarray
     steps: np.ndarray
     chi2_reduced: np.ndarray
+    stop_reason: np.ndarray
 
     def per_experiment(self, name: str, *, determined_only: bool = False) -> list[float]:
         """Estimates of `name` per experiment (NaN where it was not fitted or LM did not converge,
@@ -955,6 +958,7 @@ def fit_per_experiment(
         converged=ok,
         steps=steps,
         chi2_reduced=rss / dof,
+        stop_reason=np.asarray(stop, dtype=str),
     )
 
 

@@ -266,6 +266,7 @@ def run_fit(dataset: Dataset, config: dict, out: pathlib.Path, *, log=print) -> 
             "converged": [bool(c) if per_fit.mask[j].any() else None for j, c in enumerate(per_fit.converged)],
             "lm_steps": [int(x) for x in per_fit.steps],
             "chi2_reduced": [float(x) for x in per_fit.chi2_reduced],
+            "lm_stop_reason": [str(x) if per_fit.mask[j].any() else None for j, x in enumerate(per_fit.stop_reason)],
         },
         "notes": notes,
         "figures": figs,
