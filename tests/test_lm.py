@@ -99,6 +99,7 @@ def test_shrinking_on_rejection_reaches_a_jump_of_the_cost_instead_of_stalling_a
     se = float(jnp.sqrt(jnp.sum(r**2) / (r.size - 1)) / np.sqrt(r.size))  # J = 1: s/√n
     y = float(sol.value[0])
     assert sol.result == optx.RESULTS.successful and int(sol.state.reason) == 0  # stopped by the solver's own rule
+    assert bool(sol.state.inner.blocked)  # ... its reject_se_tol rule (reported as "cost_jump")
     assert 0.7 - 0.1 * se <= y <= 0.7, (y, se)
     assert int(sol.stats["num_steps"]) <= 20
 

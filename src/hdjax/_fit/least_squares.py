@@ -48,7 +48,7 @@ from .._plant.sharding import (
 from .._plant.simulate import Simulator, Trajectory, is_fixed_cost, simulate
 from .._workflows.progress import count_progress, lm_progress
 from .covariance import UNDETERMINED_SE_RTOL, null_directions, poorly_determined, robust_covariance, time_blocks, white_covariance
-from .lm import MarquardtLM
+from .lm import MarquardtLM, _MarquardtState
 from .paper import _consistency
 from .parameterisation import Entry, Parameterisation, parameterisation
 
@@ -345,7 +345,11 @@ class _StopState(eqx.Module):
     step_se: jax.Array  # the Gauss–Newton step left there, in standard errors (inf before the first)
 
 
-STOP_REASONS = ("tolerance", "gauss_newton_step_small", "cost_stalled", "predicted_gain_small")
+STOP_REASONS = ("tolerance", "gauss_newton_step_small", "cost_stalled", "predicted_gain_small", "cost_jump")
+"""How a fit ended (`TrajectoryFit.stop_reason`, `PerExperimentFit.stop_reason`), besides "max_steps":
+the inner solver's tolerances, `CostStop`'s three rules, or (`MarquardtLM(reject_se_tol=...)`, the
+per-experiment fits) a trial shorter than that many standard errors raised the cost: a jump of the
+cost, such as a motor that sticks or not at a reversal, within that distance of the estimate."""
 
 
 class CostStop(optx.AbstractLeastSquaresSolver):
@@ -777,8 +781,8 @@ class PerExperimentFit:
     - `converged`: per experiment, LM stopped by one of its rules (`CostStop`) within `max_steps`.
     - `steps`: LM iterations per experiment.
     - `chi2_reduced`: per experiment, residual sum of squares / (n − p).
-    - `stop_reason`: per experiment, the rule that ended its LM fit (`fit_parameters`' `stop_reason`:
-      "tolerance", "gauss_newton_step_small", "cost_stalled", "predicted_gain_small" or "max_steps").
+    - `stop_reason`: per experiment, the rule that ended its LM fit (`STOP_REASONS` or "max_steps";
+      "cost_jump": a trial under 0.1 standard errors raised the cost, see `MarquardtLM`).
     """
 
     free: tuple[str, ...]
@@ -1184,7 +1188,10 @@ def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol,
                     p = pmap_.to_model(_full_theta(z, theta0_d, idx_e, on_e), p0_d)
                     return jnp.stack([getattr(p, k) for k in pmap_.fields])[idx_e]
 
-                return (sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], f_info.residual,
+                reason = sol.state.reason
+                if isinstance(sol.state.inner, _MarquardtState):  # its reject_se_tol rule: "cost_jump"
+                    reason = jnp.where((reason == 0) & sol.state.inner.blocked, STOP_REASONS.index("cost_jump"), reason)
+                return (sol.value, sol.result, reason, sol.stats["num_steps"], f_info.residual,
                         f_info.jac.as_matrix(), jax.jacfwd(slot_values)(sol.value))
 
             # each fit's LM solves its own small linear systems: mapped on a multi-device CPU (see

@@ -65,6 +65,7 @@ class _MarquardtState(eqx.Module):
     nu: Float[Array, ""]
     num_steps: Int[Array, ""]
     done: Bool[Array, ""]
+    blocked: Bool[Array, ""]  # stopped by `reject_se_tol`: a short trial raised the cost
 
 
 class MarquardtLM(optx.AbstractLeastSquaresSolver):
@@ -93,7 +94,8 @@ class MarquardtLM(optx.AbstractLeastSquaresSolver):
         r = jnp.zeros(f_struct.shape, f_struct.dtype)
         jac = lx.MatrixLinearOperator(jnp.zeros(f_struct.shape + y.shape, f_struct.dtype))
         return _MarquardtState(optx.FunctionInfo.ResidualJac(r, jac), jnp.zeros_like(y), jnp.asarray(1.0),
-                               jnp.asarray(self.damping0), jnp.asarray(2.0), jnp.asarray(0), jnp.asarray(False))
+                               jnp.asarray(self.damping0), jnp.asarray(2.0), jnp.asarray(0), jnp.asarray(False),
+                               jnp.asarray(False))
 
     def step(self, fn, y, args, options, state, tags):
         del options, tags
@@ -120,7 +122,7 @@ class MarquardtLM(optx.AbstractLeastSquaresSolver):
             lam = jnp.where(ok & ~first & (state.nu > 2.0), state.damping, lam)
         trial, predicted = _marquardt_step(r, J, lam)
         state = _MarquardtState(optx.FunctionInfo.ResidualJac(r, lx.MatrixLinearOperator(J)), trial, predicted, lam,
-                                nu, state.num_steps + 1, small | blocked | (lam > self.max_damping))
+                                nu, state.num_steps + 1, small | blocked | (lam > self.max_damping), blocked & ~small)
         return y, state, aux
 
     def terminate(self, fn, y, args, options, state, tags):

@@ -372,7 +372,10 @@ def _per_experiment_fits(paper, res, drive, full, files, opts, notes, log):
         )
     und = {k: int(np.sum(per_fit.undetermined[:, i] != "")) for i, k in enumerate(per_fit.free)}
     und_text = ", ".join(f"{k} {n}" for k, n in und.items() if n)
+    jumps = int(np.sum(per_fit.stop_reason[informed] == "cost_jump"))
     log(f"      {int(per_fit.converged[informed].sum())}/{int(informed.sum())} converged ({t_per:.1f} s)"
+        + (f"; {jumps} stopped where a step under 0.1 standard errors raised the cost (a jump: a stick or slip "
+           "event appears or vanishes)" if jumps else "")
         + (f"; undetermined by their own record, left out of the consistency: {und_text}" if und_text else ""))
     return per_fit, t_per
 
