@@ -41,10 +41,9 @@ Measured on the shipped HD2 campaign's per-experiment fits (`fit_per_experiment`
 54 of them at the start (λ = 1e-3, the same step three or four times), most of the rest on seven
 free records and one locked record that approach such a jump; 20 fits ended on `CostStop`'s
 cost-stall rule, ten of them after 6 evaluations with the Gauss–Newton step still 1.5–29
-standard errors long. With
-both: 115 of 362 evaluations rejected (16 at the start), no fit stalled, 19 stopped by
-`reject_se_tol`. The first step accepted after a rejection keeps its λ (Nielsen's update would
-lengthen the next trial straight back over the jump).
+standard errors long. With both: 115 of 362 evaluations rejected (16 at the start), no fit
+stalled, 19 stopped by `reject_se_tol`. The first step accepted after a rejection keeps its λ
+(Nielsen's update would lengthen the next trial straight back over the jump).
 """
 
 from collections.abc import Callable
@@ -122,7 +121,7 @@ class MarquardtLM(optx.AbstractLeastSquaresSolver):
             lam = jnp.where(ok & ~first & (state.nu > 2.0), state.damping, lam)
         trial, predicted = _marquardt_step(r, J, lam)
         state = _MarquardtState(optx.FunctionInfo.ResidualJac(r, lx.MatrixLinearOperator(J)), trial, predicted, lam,
-                                nu, state.num_steps + 1, small | blocked | (lam > self.max_damping), blocked & ~small)
+                                nu, state.num_steps + 1, small | blocked | (lam > self.max_damping), blocked)
         return y, state, aux
 
     def terminate(self, fn, y, args, options, state, tags):
