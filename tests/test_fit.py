@@ -167,9 +167,10 @@ def test_a_per_experiment_estimate_the_record_does_not_pin_down_is_left_out_of_t
     (This test fitted the negative-direction Stribeck amplitude `Tssn1` before 2026-12-07. That
     estimate stayed at its start only because the fit stalled there: Levenberg–Marquardt's first
     trials were rejected, Nielsen's damping left them almost unchanged, and the cost-stall rule
-    stopped it. With `MarquardtLM(shrink_on_reject=True)` the fit moves it to about 0.59 N·m, where
-    the smoothed plant (the default adaptive solver's tanh at zero velocity) lets it shape the
-    record's start from rest, with a standard error 3 % of the estimate.)"""
+    stopped it. With `MarquardtLM(shrink_on_reject=True)` the fit moves it to about 0.59 N·m, with a
+    standard error 3 % of the estimate: the motor never turns backward, but it starts from rest,
+    where the smoothed plant (the default adaptive solver's tanh at zero velocity) lets the
+    negative-direction friction act, and the changed start carries over into the output angle.)"""
     p, drive, exps, _ = campaign
     forward = _forward_only_record(p, drive, np.asarray(exps[0].time), seed=1)
     batch = hdjax.stack_experiments([exps[3], exps[5], forward])
