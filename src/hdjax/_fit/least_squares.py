@@ -48,7 +48,7 @@ from .._plant.sharding import (
 from .._plant.simulate import Simulator, Trajectory, is_fixed_cost, simulate
 from .._workflows.progress import count_progress, lm_progress
 from .covariance import UNDETERMINED_SE_RTOL, null_directions, poorly_determined, robust_covariance, time_blocks, white_covariance
-from .lm import MarquardtLM, _MarquardtState
+from .lm import MarquardtLM, _MarquardtState, _reduced_chi2
 from .paper import _consistency
 from .parameterisation import Entry, Parameterisation, parameterisation
 
@@ -331,8 +331,7 @@ def _gauss_newton_step_in_se(residual, jacobian):
     predicts, ½‖Jδ‖² = ½m²s². Built from the Jacobian, not from a difference of two residuals, so
     it does not see the ODE solver's jitter. Returns (m, predicted decrease)."""
     delta = jnp.linalg.lstsq(jacobian, -residual)[0]
-    n = jnp.sum(residual != 0.0)
-    s2 = jnp.sum(residual**2) / jnp.maximum(n - jacobian.shape[1], 1).astype(residual.dtype)
+    s2 = _reduced_chi2(residual, jacobian.shape[1])
     jd2 = jnp.sum((jacobian @ delta) ** 2)
     return jnp.sqrt(jd2 / jnp.maximum(s2, 1e-300)), 0.5 * jd2
 
@@ -412,6 +411,8 @@ class CostStop(optx.AbstractLeastSquaresSolver):
         checkpoint = jnp.where(check, cost, state.checkpoint)
         small_gain = predicted < self.gain_rtol * cost
         reason = jnp.where(m < self.step_se_tol, 1, jnp.where(stalled, 2, jnp.where(small_gain, 3, 0)))
+        if isinstance(inner, _MarquardtState):  # `MarquardtLM(reject_se_tol=...)`: a short trial raised the cost
+            reason = jnp.where((reason == 0) & inner.blocked, STOP_REASONS.index("cost_jump"), reason)
         if self.callback is not None:
             jax.debug.callback(self.callback, inner.num_steps, cost, m)
         return y, _StopState(inner, checkpoint, reason, cost, m), aux
@@ -1188,10 +1189,7 @@ def _per_experiment_fit_program(free, simulator, solver, max_steps, step_se_tol,
                     p = pmap_.to_model(_full_theta(z, theta0_d, idx_e, on_e), p0_d)
                     return jnp.stack([getattr(p, k) for k in pmap_.fields])[idx_e]
 
-                reason = sol.state.reason
-                if isinstance(sol.state.inner, _MarquardtState):  # its reject_se_tol rule: "cost_jump"
-                    reason = jnp.where((reason == 0) & sol.state.inner.blocked, STOP_REASONS.index("cost_jump"), reason)
-                return (sol.value, sol.result, reason, sol.stats["num_steps"], f_info.residual,
+                return (sol.value, sol.result, sol.state.reason, sol.stats["num_steps"], f_info.residual,
                         f_info.jac.as_matrix(), jax.jacfwd(slot_values)(sol.value))
 
             # each fit's LM solves its own small linear systems: mapped on a multi-device CPU (see

@@ -144,12 +144,16 @@ def _linearise(fn, y, args):
     return out, J
 
 
-def _length_in_se(r, J, step):
-    """‖J·step‖/s, s² = ‖r‖²/(n − p) over the non-zero residuals: the step's length in standard
-    errors (Mahalanobis), as `hdjax._fit.least_squares._gauss_newton_step_in_se` measures it."""
+def _reduced_chi2(r, n_params):
+    """s² = ‖r‖²/(n − p) over the n non-zero residuals (zero rows are padding or unmeasured)."""
     n = jnp.sum(r != 0.0)
-    s2 = jnp.sum(r**2) / jnp.maximum(n - J.shape[1], 1).astype(r.dtype)
-    return jnp.sqrt(jnp.sum((J @ step) ** 2) / jnp.maximum(s2, 1e-300))
+    return jnp.sum(r**2) / jnp.maximum(n - n_params, 1).astype(r.dtype)
+
+
+def _length_in_se(r, J, step):
+    """‖J·step‖/s (s² `_reduced_chi2`): the step's length in standard errors (Mahalanobis), as
+    `hdjax._fit.least_squares._gauss_newton_step_in_se` measures the Gauss–Newton step."""
+    return jnp.sqrt(jnp.sum((J @ step) ** 2) / jnp.maximum(_reduced_chi2(r, J.shape[1]), 1e-300))
 
 
 def _damping_to_halve(J, r, lam, rejected, max_damping):
