@@ -15,6 +15,7 @@ from .._fit.least_squares import (
     BREAKAWAY_GRID,
     BREAKAWAY_PATHS,
     DEFAULT_FREE,
+    PER_EXPERIMENT_REJECT_SE_TOL,
     fit_breakaway_friction,
     fit_parameters,
     fit_per_experiment,
@@ -374,8 +375,8 @@ def _per_experiment_fits(paper, res, drive, full, files, opts, notes, log):
     und_text = ", ".join(f"{k} {n}" for k, n in und.items() if n)
     jumps = int(np.sum(per_fit.stop_reason[informed] == "cost_jump"))
     log(f"      {int(per_fit.converged[informed].sum())}/{int(informed.sum())} converged ({t_per:.1f} s)"
-        + (f"; {jumps} stopped where a step under 0.1 standard errors raised the cost (a jump: a stick or slip "
-           "event appears or vanishes)" if jumps else "")
+        + (f"; {jumps} stopped where a step under {PER_EXPERIMENT_REJECT_SE_TOL:g} standard errors raised the cost (a "
+           "jump: a stick or slip event appears or vanishes)" if jumps else "")
         + (f"; undetermined by their own record, left out of the consistency: {und_text}" if und_text else ""))
     return per_fit, t_per
 
