@@ -732,12 +732,17 @@ def fit_breakaway_friction(
     return out, report
 
 
-# `experiment_residuals` as a jitted call inside the two programs below: JAX keeps the jaxpr of its
-# first trace (in the squared-error program) and the grid program, which `vmap`s it over the grid
-# values, batches that jaxpr instead of tracing the plant again. HD2 fit command, reading the
-# compilation cache, six runs each way alternating with the code before (2026-12-07): the grid
-# program's first call 1.06 s instead of 1.86 s, the breakaway stage 4.8–5.1 s against 5.3–5.7 s,
-# fit.json identical.
+# `experiment_residuals` as a jitted call inside the joint fit's residuals (`_batch_residuals`) and
+# the two programs of `profile_effect_parameters` below: JAX keeps the jaxpr of its first trace (in
+# the joint fit, differentiated there), and the breakaway stage's squared-error program reuses it as
+# it is and its grid program, which `vmap`s it over the grid values, batches it, instead of tracing
+# the plant again. HD2 fit command, reading the compilation cache, runs alternating with the code
+# before (2026-12-07): the two profile programs alone sharing it, six runs each way, the grid
+# program's first call 1.06 s instead of 1.86 s and the breakaway stage 4.8–5.1 s against 5.3–5.7 s;
+# with the joint fit's too, two runs each way, JAX's trace events summed over the command 5.12–5.17 s
+# against 5.51–5.68 s and the breakaway stage 4.6–4.7 s against 5.0–5.2 s; fit.json identical. The
+# per-experiment fits' residuals call it plainly: there the JVP of the kept jaxpr cost about what
+# tracing the plant does (no gain measured).
 _experiment_residuals_jit = eqx.filter_jit(experiment_residuals)
 
 
@@ -1152,7 +1157,7 @@ def _batch_residuals(p, effects, drive, batch, sigma, simulator, mesh):
 
     def per_device(shared, b):
         p_, eff_, d_, s_ = shared
-        return for_each_experiment(lambda e: experiment_residuals(p_, d_, e, s_, simulator, eff_), b,
+        return for_each_experiment(lambda e: _experiment_residuals_jit(p_, d_, e, s_, simulator, eff_), b,
                                    fixed_cost=is_fixed_cost(simulator))
 
     return map_experiments(per_device, mesh)((p, effects, drive, sigma), batch)
