@@ -750,14 +750,9 @@ _experiment_residuals_jit = eqx.filter_jit(experiment_residuals)
 def _sse_program(simulator, mesh):
     """The compiled whitened squared error of a batch: `run(p, effects, drive, batch, sigma)`."""
 
-    def per_device(shared, b):
-        p_, eff_, d_, s_ = shared
-        return for_each_experiment(lambda e: _experiment_residuals_jit(p_, d_, e, s_, simulator, eff_), b,
-                                   fixed_cost=is_fixed_cost(simulator))
-
     @eqx.filter_jit
     def run(p, eff, drive_, batch_, sigma_):
-        return jnp.sum(map_experiments(per_device, mesh)((p, eff, drive_, sigma_), batch_) ** 2)
+        return jnp.sum(_batch_residuals(p, eff, drive_, batch_, sigma_, simulator, mesh) ** 2)
 
     return run
 
