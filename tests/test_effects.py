@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import hdjax
 from helpers import hd1, hd2, sine_experiment
@@ -225,3 +226,51 @@ def test_every_term_carries_its_parameters_units_fit_settings_and_plain_numbers(
     for order in (0, 9):  # an index outside 1..MAX_ORDER would land on another order's slot
         with pytest.raises(ValueError, match="order must be 1..8"):
             hdjax.Effects().with_periodic("cogging", order, 1.0)
+
+
+def test_harmonic_basis_is_the_sines_and_cosines_of_every_order():
+    """The periodic terms take sin kθ, cos kθ (k = 1..MAX_ORDER) from sin θ and cos θ by the
+    angle-addition recurrence (`harmonic_basis`): within 1e-14 of jnp.sin(kθ) over a turn either
+    way, and within the direct evaluation's own rounding of kθ (eps·k·|θ|) at large angles."""
+    from hdjax._model.effects import _ORDERS, harmonic_basis, harmonic_sum
+
+    rng = np.random.default_rng(3)
+    for lim, tol in ((2 * np.pi, 1e-14), (3000.0, 8 * 3000.0 * 2.3e-16 * 4)):
+        th = jnp.asarray(rng.uniform(-lim, lim, 20000))
+        s, c = harmonic_basis(th)
+        assert float(jnp.max(jnp.abs(s - jnp.sin(_ORDERS * th[:, None])))) < tol
+        assert float(jnp.max(jnp.abs(c - jnp.cos(_ORDERS * th[:, None])))) < tol
+    # a periodic term's value and rate against the general harmonic sum
+    term = hdjax.Effects().with_periodic("cogging", 3, 0.03, 0.3).with_periodic("cogging", 8, 0.01, -1.0).cogging
+    th = jnp.linspace(-7.0, 7.0, 1001)
+    np.testing.assert_allclose(np.asarray(term.value(th)), np.asarray(harmonic_sum(th, _ORDERS, term.sin, term.cos)), atol=1e-15)
+    rate = jax.vmap(jax.grad(lambda t: term.value(t)))(th) * 2.5
+    np.testing.assert_allclose(np.asarray(term.rate(th, 2.5)), np.asarray(rate), atol=1e-14)
+
+
+@pytest.mark.parametrize("backlash", [0.0, 1e-9, 1e-6, 3e-3, -3e-3])
+def test_deadzone_is_the_softplus_difference_and_differentiates_through_zero(backlash):
+    """`LostMotion.deadzone` is written with one exponential and one logarithm of the torsion; it must
+    equal the two-softplus form of its docstring, with the same derivatives in the torsion (at
+    zero torsion too, where the |x| form switches branch) and in the backlash."""
+    lm = hdjax.LostMotion(backlash=backlash)
+    d = abs(backlash)
+    s = d / 20.0 + 1e-9
+
+    def softplus_form(x, b):
+        dd = jnp.abs(b)
+        ss = dd / 20.0 + 1e-9
+        return ss * (jnp.logaddexp(0.0, (x - dd) / ss) - jnp.logaddexp(0.0, (-x - dd) / ss))
+
+    x = jnp.concatenate([jnp.linspace(-(d + 30 * s), 2 * d + 30 * s, 4001), jnp.array([0.0, 0.1, -0.1])])
+    # to round-off of the torsion's scale (inside the band the |x| form cancels |x| against the log:
+    # an absolute error of about eps·(d/s)·s, 1e-19 rad at a 3 mrad backlash)
+    scale = float(jnp.max(jnp.abs(x)))
+    np.testing.assert_allclose(np.asarray(lm.deadzone(x)), np.asarray(softplus_form(x, backlash)), rtol=1e-13, atol=1e-14 * scale)
+    gx = jax.vmap(jax.grad(lambda t: hdjax.LostMotion(backlash=backlash).deadzone(t)))(x)
+    np.testing.assert_allclose(np.asarray(gx), np.asarray(jax.vmap(jax.grad(lambda t: softplus_form(t, backlash)))(x)), atol=1e-13)
+    assert float(gx[-3]) > 0.0  # slope at zero torsion: positive, from the branch x >= 0
+    if backlash != 0.0:
+        gb = jax.vmap(jax.grad(lambda b, t: hdjax.LostMotion(backlash=b).deadzone(t)), (None, 0))(backlash, x)
+        gb_ref = jax.vmap(jax.grad(softplus_form, argnums=1), (0, None))(x, backlash)
+        np.testing.assert_allclose(np.asarray(gb), np.asarray(gb_ref), atol=1e-13)

@@ -341,3 +341,54 @@ def test_breakaway_friction_holds_the_motor_until_its_static_torque_and_changes_
         hdjax.simulate(p, drive, exp, effects=zero, simulator=hdjax.Simulator())
     with pytest.raises(ValueError, match="breakaway_friction.*not screened"):
         hdjax.diagnose_effects(p, drive, [exp], model_form=["breakaway_friction"])
+
+
+def test_inputs_read_before_the_scan_give_the_trajectory_read_inside_it():
+    """`implicit_trajectory` reads the current (delayed, between samples as `input_between_samples`
+    says) and the record's angles at every step's nodes before its scan (`PlantSteps.inputs_at`); the
+    closed loop's steps read them inside (`step(state, t0)` without inputs). On a free record with
+    every term that reads them on (measured angle, periodic terms, an input delay, the cubic blend
+    between samples) both must give the same trajectory to round-off, and the same derivative with
+    respect to the delay."""
+    import hdjax._plant.simulate as sim_mod
+    from hdjax._plant.stepper import plant_steps
+
+    def read_inside(p_dyn, drive, exp, y0, geometry, current, effects, vc, dt, solver):
+        """`implicit_trajectory` with every read inside the step."""
+        h = dt / solver.substeps
+        steps = plant_steps(p_dyn, drive, exp.free, exp.start_time, geometry, effects, vc, h, solver)(current)
+
+        def interval(state, t0):
+            state, oks = jax.lax.scan(lambda st, k: steps.step(st, t0 + k * h), state, jnp.arange(solver.substeps, dtype=float))
+            return state, (state, jnp.all(oks))
+
+        state0 = tuple(jnp.asarray(x, dtype=float) for x in steps.start(y0, exp.time[0]))
+        n = exp.time.shape[0]
+        _, (states, oks) = jax.lax.scan(interval, state0, exp.time[0] + dt * jnp.arange(n - 1, dtype=float))
+        q, wm, tho, wo, _, _, T, _ = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), state0, states)
+        thm = steps.theta_m(q, tho, exp.time, geometry[3])
+        return (q, wm, tho, wo, T, steps.torsion_of(q, thm), thm), jnp.concatenate([jnp.array([True]), oks]), (n - 1) * solver.substeps
+
+    p, drive = hd2()
+    eff = (hdjax.Effects().with_periodic("cogging", 4, 0.03, 0.3).with_periodic("kinematic_error", 2, 2e-4, 0.1)
+           .with_term(hdjax.InputDelay(delay=3e-4)).with_term(hdjax.InputBetweenSamples(reconstruction=0.7)))
+    exp = sine_experiment("free", amplitude=0.3, freq=2.0, duration=0.3)
+    rec = _with_angles(exp, _sim(p, drive, exp, 8))
+    s = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=4), measured_angle=True)
+
+    def run(delay, inside: bool):
+        e = eqx.tree_at(lambda x: x.input_delay.delay, eff, delay)
+        original = sim_mod.implicit_trajectory
+        sim_mod.implicit_trajectory = read_inside if inside else original
+        try:
+            tr = hdjax.simulate(p, drive, rec, effects=e, simulator=s)
+        finally:
+            sim_mod.implicit_trajectory = original
+        return jnp.stack([tr.torque, tr.motor_velocity])
+
+    d0, t0 = jnp.asarray(3e-4), jnp.asarray(1.0)
+    before, d_before = jax.jvp(lambda d: run(d, False), (d0,), (t0,))
+    inside, d_inside = jax.jvp(lambda d: run(d, True), (d0,), (t0,))
+    assert float(jnp.max(jnp.abs(d_inside))) > 0
+    np.testing.assert_allclose(np.asarray(before), np.asarray(inside), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(d_before), np.asarray(d_inside), rtol=0, atol=1e-9 * float(jnp.max(jnp.abs(d_inside))))

@@ -456,13 +456,26 @@ _C0 = (1.0 - _GAMMA) ** 2 / (_GAMMA * (2.0 - _GAMMA))
 _C2 = (1.0 - _GAMMA) / (2.0 - _GAMMA)
 
 
+class StepInputs(NamedTuple):
+    """What a step reads from the record at its three nodes t0, t0 + γh, t0 + h (last axis; leading
+    axes as the times given to `PlantSteps.inputs_at`): the motor torque Km·i(t − τd) (N·m) and, where
+    a periodic term acts at the measured angle, the record's (output, motor) angles (rad; None
+    otherwise). Read for every step at once, before the scan: inside it each read is an
+    interpolation in the record (an index, two gathers) that the step repeats in every pass of
+    every stage (on a diagnosis's base model, 40 % of a simulation's time, 2026-12-07)."""
+
+    electric: Any
+    angles: Any = None
+
+
 class PlantSteps(NamedTuple):
     """The stepper's functions for one plant with the current bound (`plant_steps(...)(current)`):
     `start(y0, t0)` the step state at the sample `t0` from the plant state `y0` = (q, ω_m, θ_o,
     ω_o); `step(state, t0)` one TR-BDF2 step of length h from `t0`, returning the new state and
     whether its roots converged; `with_friction(state, t0)` the state with its friction taken again
     at t0 (after a jump of the drive); `theta_m(q, θ_o, t[, angles])` the wave-generator angle (rad);
-    `torsion_of(q, θ_m)` the true torsion (rad). The step state is (q, ω_m, θ_o, ω_o, z, s, T, F):
+    `torsion_of(q, θ_m)` the true torsion (rad); `inputs_at(t)` the `StepInputs` at the node times
+    `t` (..., 3) for `step(state, t0, inputs)`. The step state is (q, ω_m, θ_o, ω_o, z, s, T, F):
     kinematic torsion, velocities and output angle, the Dahl state, the damping unknown, the
     transmitted torque (N·m) and the friction (N·m)."""
 
@@ -471,6 +484,7 @@ class PlantSteps(NamedTuple):
     with_friction: Callable
     theta_m: Callable
     torsion_of: Callable
+    inputs_at: Callable
 
 
 def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, solver: VelocityImplicit):
@@ -494,19 +508,21 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
     delay = effects.input_delay.delay if "input_delay" in effects.active else 0.0
     ke = "kinematic_error" in effects.active
 
-    def theta_m(q, tho, t, angles=measured):
+    def theta_m(q, tho, t, angles=measured, node=None):
         """θm (rad) at time t (s): the plant's own angle, or the record's where `angles` (a
-        `MeasuredAngle`, `Simulator.measured_angle`) holds it, as in the adaptive plant."""
+        `MeasuredAngle`, `Simulator.measured_angle`) holds it, as in the adaptive plant. `node`:
+        the record's (output, motor) angles at t, read before the scan (`StepInputs`), or None."""
         if angles is None:
             return thm_g + N * ((q - q_g) + (tho - tho_g))
-        thm = thm_g + N * ((q - q_g) + (angles.output_angle(t, tho) - tho_g))
-        return angles.motor_angle(t, thm)
+        out = angles.output_angle(t, tho) if node is None else jnp.where(angles.use_output > 0, node[0], tho)
+        thm = thm_g + N * ((q - q_g) + (out - tho_g))
+        return angles.motor_angle(t, thm) if node is None else jnp.where(angles.use_motor > 0, node[1], thm)
 
-    def predicted_angle(t1, tau, q0, tho0, wo0, thm0, wm0):
+    def predicted_angle(t1, tau, q0, tho0, wo0, thm0, wm0, node=None):
         """θm at the stage end t1 = t0 + tau, predicted at constant speed (or read from the record)."""
         if measured is None:
             return thm0 + tau * wm0
-        return theta_m(q0, tho0 + tau * wo0, t1)
+        return theta_m(q0, tho0 + tau * wo0, t1, node=node)
 
     def torsion_of(q, thm):
         return q + (eff.periodic("kinematic_error", thm) if ke else 0.0)
@@ -526,7 +542,7 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
         def electric(t):
             return Km * current.evaluate(t - delay)
 
-        def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0, crossing=None):
+        def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0, crossing=None, electric_t1=None):
             """The stage equation's data: `hist` = (A, ω_m, q, ω_o history, bh, fh/J); the explicit
             terms (position- and load-dependent) evaluated at the predicted stage end (θ_m1, ω_m1, T1);
             `crossing` = (ω_m at the step start, ω_m at the stage start, stage k, the stage's fraction
@@ -546,7 +562,7 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                 g_lag=jnp.exp(-((wm1 / p.Tss2) ** 2)),
                 e1=eff.periodic("kinematic_error", thm1) if ke else 0.0,
                 edot1=eff.periodic_rate("kinematic_error", thm1, wm1) if ke else 0.0,
-                drive=electric(t1) + eff.periodic("cogging", thm1),
+                drive=(electric(t1) if electric_t1 is None else electric_t1) + eff.periodic("cogging", thm1),
             )
             if crossing is not None:
                 w0, ws, xk, theta, F0, Fa, near = crossing
@@ -562,11 +578,12 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             P["m_old"] = _side_mean_friction(P["ws"], jnp.zeros_like(P["ws"]), side, P, erfc_a=P["erfc_ws"])
             return P
 
-        def stage(t1, hist, tho_hist, thm_pred, start, s_guess, crossing):
+        def stage(t1, hist, tho_hist, thm_pred, start, s_guess, crossing, end_node=(None, None)):
             """Solve one stage ending at t1; `start` = (θ_m, ω_m, T, torsion, z) at the stage start, from
             which the explicit terms are predicted (θ_m at the stage end: `thm_pred`); `crossing` =
             (ω_m at the step start, stage k, the stage's fraction before a reversal, F_0, the first
-            stage's F, `near`) for `_stage_friction`, None without `reversal_quadrature`.
+            stage's F, `near`) for `_stage_friction`, None without `reversal_quadrature`; `end_node` =
+            (Km·i, the record's angles) at t1 where read before the scan (`StepInputs`), else Nones.
 
             The corrector's second pass is the same `_solve_step` as the first, with the explicit terms
             at the first pass's stage end: both passes are one traced pass in a two-iteration
@@ -577,10 +594,10 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                 """Solve the stage with the explicit terms at `carry`'s (θ_m, ω_m, T); the next pass's."""
                 s, _, _, conv, thm_e, wm_e, T_e, _, _ = carry
                 P = stage_parameters(t1, hist, thm_e, wm_e, T_e, tor0, z0,
-                                     None if crossing is None else (crossing[0], wm0, *crossing[1:]))
+                                     None if crossing is None else (crossing[0], wm0, *crossing[1:]), end_node[0])
                 s, out, stuck, conv_k, corr = _solve_step(P, s, solver.iterations, solver.reversal_quadrature)
                 r1, q1, tor1, Tk1, z1, T1, wo1, wm1 = out
-                thm1 = theta_m(q1, tho_hist + hist[4] * wo1, t1)
+                thm1 = theta_m(q1, tho_hist + hist[4] * wo1, t1, node=end_node[1])
                 return s, out, stuck, conv & conv_k, thm1, wm1, 0.5 * (T0 + T1), P["drive"], corr
 
             # placeholders for the first pass's outputs, with the tangents and batch axes of the state
@@ -614,16 +631,24 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                 F1 = F1 - jnp.where(crossing[1] == 0, 0.0, corr)
             return (q1, wm1, tho1, wo1, z1, s, T1, F1), tor1, conv
 
-        def step(state, t0):
+        def step(state, t0, inputs=None):
             """One TR-BDF2 step from t0 to t0 + h: a trapezoidal stage to t0 + γh, then BDF2 to t0 + h.
 
             Both stages are one `stage` call in a two-iteration `lax.scan` (stage k = 0, 1; their
             coefficients selected by k): the stage, the step's whole cost, is traced and compiled once
-            instead of twice."""
+            instead of twice. `inputs`: the current and the record's angles at the step's three
+            nodes, read before the scan (`PlantSteps.inputs_at`), or None to read them here."""
             q0, wm0, tho0, wo0, z0, s0, T0, F0 = state
-            thm0 = theta_m(q0, tho0, t0)
+
+            def node(j):
+                """(Km·i, the record's angles or None) at node j (0: t0, 1: t0 + γh, 2: t0 + h), or Nones."""
+                if inputs is None:
+                    return None, None
+                return inputs.electric[j], (None if inputs.angles is None else inputs.angles[j])
+
+            thm0 = theta_m(q0, tho0, t0, node=node(0)[1])
             tor0 = torsion_of(q0, thm0)
-            drive0 = electric(t0) + eff.periodic("cogging", thm0)
+            drive0 = (electric(t0) if inputs is None else inputs.electric[0]) + eff.periodic("cogging", thm0)
 
             def crossing(k, tp, t1, Fp):
                 """The data of `_stage_friction` for stage k on [tp, t1] (None without
@@ -658,10 +683,11 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                     bh * f / drive.load_inertia,
                 )
                 tho_hist = jnp.where(first, tho0 + bh * wo0, _C1 * thop - _C0 * tho0)
-                thmp = theta_m(qp, thop, tp)
-                thm_pred = predicted_angle(t1, t1 - tp, qp, thop, wop, thmp, wmp)
+                start_node, end_node = node(k), node(k + 1)
+                thmp = theta_m(qp, thop, tp, node=start_node[1])
+                thm_pred = predicted_angle(t1, t1 - tp, qp, thop, wop, thmp, wmp, node=end_node[1])
                 out, tor1, conv = stage(t1, hist, tho_hist, thm_pred, (thmp, wmp, Tp, torp, zp), sp,
-                                        crossing(k, tp, t1, Fp))
+                                        crossing(k, tp, t1, Fp), end_node)
                 return (out, tor1), conv
 
             (out, _), conv = jax.lax.scan(one_stage, (state, tor0), jnp.arange(2))
@@ -694,7 +720,13 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
             T0 = stiffness_torque(p.K1, torsion_of(q0, thm0), eff) + p.Tst * s0
             return with_friction((q0, wm0, tho0, wo0, z0, s0, T0, 0.0 * T0), t0)
 
-        return PlantSteps(start=start, step=step, with_friction=with_friction, theta_m=theta_m, torsion_of=torsion_of)
+        def inputs_at(t):
+            """`StepInputs` at the node times `t` (s; any shape): what `step` would read there."""
+            angles = None if measured is None else jnp.stack([measured.output.evaluate(t), measured.motor.evaluate(t)], axis=-1)
+            return StepInputs(electric=electric(t), angles=angles)
+
+        return PlantSteps(start=start, step=step, with_friction=with_friction, theta_m=theta_m, torsion_of=torsion_of,
+                          inputs_at=inputs_at)
 
     return bind
 
@@ -718,11 +750,16 @@ def implicit_trajectory(
     h = dt / m
     steps = plant_steps(p, drive, exp.free, exp.start_time, geometry, effects, vc, h, solver)(current)
 
-    def sample_interval(state, t0):
-        def body(st, k):
-            return steps.step(st, t0 + k * h)
+    substep = jnp.arange(m, dtype=float)
 
-        state, conv = jax.lax.scan(body, state, jnp.arange(m, dtype=float))
+    def sample_interval(state, xs):
+        t0, inputs = xs
+
+        def body(st, k_inputs):
+            k, inp = k_inputs
+            return steps.step(st, t0 + k * h, inp)
+
+        state, conv = jax.lax.scan(body, state, (substep, inputs))
         return state, (state, jnp.all(conv))
 
     state0 = steps.start(y0, exp.time[0])
@@ -730,7 +767,10 @@ def implicit_trajectory(
     state0 = tuple(jnp.asarray(x, dtype=float) + zero for x in state0)
     n = exp.time.shape[0]
     t_starts = exp.time[0] + dt * jnp.arange(n - 1, dtype=float)
-    _, (states, oks) = jax.lax.scan(sample_interval, state0, t_starts)
+    # every step's node times, with the step's own arithmetic (t0 + k·h, then + γh or + h)
+    t_sub = t_starts[:, None] + substep * h
+    inputs = steps.inputs_at(jnp.stack([t_sub, t_sub + _GAMMA * h, t_sub + h], axis=-1))
+    _, (states, oks) = jax.lax.scan(sample_interval, state0, (t_starts, inputs))
     states = jax.tree.map(lambda a, b: jnp.concatenate([jnp.asarray(a)[None], b]), state0, states)
     q, wm, tho, wo, z, s, T, _ = states
     thm = steps.theta_m(q, tho, exp.time, geometry[3])
