@@ -228,14 +228,21 @@ class MeasuredAngle(eqx.Module):
     use_output: Float[Array, ""]
     use_motor: Float[Array, ""]
 
-    def output_angle(self, t, th_o_simulated):
+    def output_angle(self, t, th_o_simulated, reading=None):
         """The output angle (rad) at time `t` (s) that θm is built from: the encoder's in free
-        motion, else the simulated `th_o_simulated`."""
-        return jnp.where(self.use_output > 0, self.output.evaluate(t), th_o_simulated)
+        motion, else the simulated `th_o_simulated`. `reading`: the encoder's angle at `t` where
+        already read (`readings`), else it is read here."""
+        return jnp.where(self.use_output > 0, self.output.evaluate(t) if reading is None else reading, th_o_simulated)
 
-    def motor_angle(self, t, th_m):
-        """θm (rad) at time `t` (s): the motor encoder's where measured, else `th_m`."""
-        return jnp.where(self.use_motor > 0, self.motor.evaluate(t), th_m)
+    def motor_angle(self, t, th_m, reading=None):
+        """θm (rad) at time `t` (s): the motor encoder's where measured, else `th_m`. `reading` as in
+        `output_angle`."""
+        return jnp.where(self.use_motor > 0, self.motor.evaluate(t) if reading is None else reading, th_m)
+
+    def readings(self, t):
+        """(output, motor) encoder angles (rad) at times `t` (s, any shape), stacked on a last axis:
+        the `reading`s of `output_angle` and `motor_angle`."""
+        return jnp.stack([self.output.evaluate(t), self.motor.evaluate(t)], axis=-1)
 
 
 class UniformCubicBlendInput(eqx.Module):

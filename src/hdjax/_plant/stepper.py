@@ -516,9 +516,9 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
         the record's (output, motor) angles at t, read before the scan (`StepInputs`), or None."""
         if angles is None:
             return thm_g + N * ((q - q_g) + (tho - tho_g))
-        out = angles.output_angle(t, tho) if node is None else jnp.where(angles.use_output > 0, node[0], tho)
-        thm = thm_g + N * ((q - q_g) + (out - tho_g))
-        return angles.motor_angle(t, thm) if node is None else jnp.where(angles.use_motor > 0, node[1], thm)
+        out_reading, motor_reading = (None, None) if node is None else (node[0], node[1])
+        thm = thm_g + N * ((q - q_g) + (angles.output_angle(t, tho, out_reading) - tho_g))
+        return angles.motor_angle(t, thm, motor_reading)
 
     def predicted_angle(t1, tau, q0, tho0, wo0, thm0, wm0, node=None):
         """θm at the stage end t1 = t0 + tau, predicted at constant speed (or read from the record)."""
@@ -541,8 +541,9 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
     stribeck_may_lag = (p.Tssp1 > 0) | (p.Tssn1 > 0)
 
     def bind(current) -> PlantSteps:
-        def electric(t):
-            return Km * current.evaluate(t - delay)
+        def electric(t, reading=None):
+            """Km·i(t − τd) (N·m), or `reading` where it was taken before the scan (`StepInputs`)."""
+            return Km * current.evaluate(t - delay) if reading is None else reading
 
         def stage_parameters(t1, hist, thm1, wm1, T1, tor0, z0, crossing=None, electric_t1=None):
             """The stage equation's data: `hist` = (A, ω_m, q, ω_o history, bh, fh/J); the explicit
@@ -564,7 +565,7 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                 g_lag=jnp.exp(-((wm1 / p.Tss2) ** 2)),
                 e1=eff.periodic("kinematic_error", thm1) if ke else 0.0,
                 edot1=eff.periodic_rate("kinematic_error", thm1, wm1) if ke else 0.0,
-                drive=(electric(t1) if electric_t1 is None else electric_t1) + eff.periodic("cogging", thm1),
+                drive=electric(t1, electric_t1) + eff.periodic("cogging", thm1),
             )
             if crossing is not None:
                 w0, ws, xk, theta, F0, Fa, near = crossing
@@ -648,9 +649,10 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
                     return None, None
                 return inputs.electric[j], (None if inputs.angles is None else inputs.angles[j])
 
-            thm0 = theta_m(q0, tho0, t0, node=node(0)[1])
+            electric0, angles0 = node(0)
+            thm0 = theta_m(q0, tho0, t0, node=angles0)
             tor0 = torsion_of(q0, thm0)
-            drive0 = (electric(t0) if inputs is None else inputs.electric[0]) + eff.periodic("cogging", thm0)
+            drive0 = electric(t0, electric0) + eff.periodic("cogging", thm0)
 
             def crossing(k, tp, t1, Fp):
                 """The data of `_stage_friction` for stage k on [tp, t1] (None without
@@ -724,8 +726,7 @@ def plant_steps(p, drive, free, start_time, geometry, effects: Effects, vc, h, s
 
         def inputs_at(t):
             """`StepInputs` at the node times `t` (s; any shape): what `step` would read there."""
-            angles = None if measured is None else jnp.stack([measured.output.evaluate(t), measured.motor.evaluate(t)], axis=-1)
-            return StepInputs(electric=electric(t), angles=angles)
+            return StepInputs(electric=electric(t), angles=None if measured is None else measured.readings(t))
 
         return PlantSteps(start=start, step=step, with_friction=with_friction, theta_m=theta_m, torsion_of=torsion_of,
                           inputs_at=inputs_at)
