@@ -18,7 +18,9 @@ physical axis, e.g. `Float[Array, "*exp time"]`). `hdjax._testbench.independent`
 numpy code written apart from hdjax, with no array annotations to check, and its integrator calls
 small functions ~10⁵ times per dataset; the checker's wrapper on each call made it 5.3× slower
 (a 4 + 4 × 1.5 s dataset: 28.9 s against 5.5 s), which the suite paid in every test that makes
-bench data. `HDJAX_RUNTIME_TYPECHECK=0` runs without the checker."""
+bench data. Its time loop `hdjax._testbench.fine_steps` is left out too: numba compiles the
+functions themselves, and cannot compile a checker's wrapper. `HDJAX_RUNTIME_TYPECHECK=0` runs
+without the checker."""
 
 import importlib.util
 import os
@@ -31,7 +33,10 @@ os.environ.setdefault("HDJAX_COMPILATION_CACHE", "off")
 import jaxtyping
 
 #: hdjax modules the runtime type checker leaves out, and why (see the module docstring).
-UNCHECKED = {"hdjax._testbench.independent": "numpy-only independent bench, no array annotations; 5.3x slower when wrapped"}
+UNCHECKED = {
+    "hdjax._testbench.independent": "numpy-only independent bench, no array annotations; 5.3x slower when wrapped",
+    "hdjax._testbench.fine_steps": "the bench's time loop, compiled by numba: a checker's wrapper cannot be compiled",
+}
 
 
 def checked_modules() -> list[str]:

@@ -22,19 +22,75 @@ def _sigma(truth, ch):
             "output_position": s["encoder_step"] / np.sqrt(12.0)}[ch]  # fmt: skip
 
 
-def test_imports_nothing_from_hdjax_or_jax():
-    tree = ast.parse(SRC.read_text())
+@pytest.mark.parametrize("src", [SRC, SRC.with_name("fine_steps.py")], ids=lambda p: p.name)
+def test_imports_nothing_from_hdjax_or_jax(src):
+    """The bench and its compiled time loop (`fine_steps`, which the bench imports as its only
+    module of the package) import neither hdjax nor JAX."""
+    tree = ast.parse(src.read_text())
     names = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names += [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
+            if node.level == 1 and node.module is None and [a.name for a in node.names] == ["fine_steps"]:
+                assert src == SRC, "only the bench imports its time loop"
+                continue
             assert node.level == 0, f"relative import `from {'.' * node.level}{node.module or ''}` in the independent bench"
             names.append(node.module)
     assert names, "no imports found"
     for n in names:
         root = n.split(".")[0]
         assert root not in {"hdjax", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax"}, n
+
+
+def _both_loops(monkeypatch):
+    """Run every `_integrate` call of the bench with the compiled loop and with the numpy reference
+    (`_integrate_numpy`, on a copy of the commanded current), recording their largest relative
+    difference per history."""
+    diffs = []
+    compiled = _bench._integrate
+
+    def both(bench, icmd, *args, **kw):
+        H = compiled(bench, icmd, *args, **kw)
+        ref_kw = dict(kw)
+        if kw.get("hook") is not None:  # a controller hook wrote its commands into icmd as the run went: replay them
+            ref_kw["hook"] = lambda n, H_: None
+        R = _bench._integrate_numpy(bench, icmd.copy(), *args, **ref_kw)
+        diffs.append({k: float(np.max(np.abs(H[k] - R[k])) / max(float(np.max(np.abs(R[k]))), 1e-300)) for k in R})
+        return H
+
+    monkeypatch.setattr(_bench, "_integrate", both)
+    return diffs
+
+
+@pytest.mark.skipif(not _bench.fine_steps.AVAILABLE, reason="numba is not installed: the numpy loop is the only one")
+@pytest.mark.parametrize("case", ["every_effect", "presliding", "lugre", "power_law_viscous", "closed_loop"])
+def test_compiled_time_loop_reproduces_the_numpy_loop(case, monkeypatch):
+    """`fine_steps.run_steps` (numba, per record, scalars) against `_integrate_numpy` (the
+    vectorised loop it replaced, kept as the reference): the same histories to rounding, with every
+    effect and deviation on, both low-speed laws and a controller hook. (They differ only in how
+    numpy and LLVM round sin, exp and powers; a stick decision that flipped would show as an O(1)
+    difference.)"""
+    diffs = _both_loops(monkeypatch)
+    bench = _bench._draw_bench("hd2", 4, _bench.Deviations(), "per_sensor", 1000.0)
+    mag = {e: {"magnitude": 3.0 * _bench._first_guess(e, bench)} for e in _bench.EFFECTS}
+    kw = dict(drive="hd2", seed=4, n_locked=2, n_free=2, duration=0.3)
+    if case == "every_effect":
+        _bench.simulate_dataset(effects={e: v for e, v in mag.items() if e != "presliding_friction"}, **kw)
+    elif case == "presliding":
+        _bench.simulate_dataset(effects={"presliding_friction": mag["presliding_friction"]}, **kw)
+    elif case == "lugre":
+        _bench.simulate_dataset(effects={"presliding_friction": mag["presliding_friction"]}, low_speed="lugre", **kw)
+    elif case == "power_law_viscous":
+        _bench.simulate_dataset(deviations=dataclasses.replace(_bench.Deviations(), viscous_exponent=0.6), **kw)
+    else:
+        b = _bench.Bench(drive="hd1", seed=5, effects={e: mag[e] for e in ("cogging", "thermal_drift", "input_delay")})
+        K = 300
+        ref = np.stack([20.0 * np.sin(np.linspace(0, 6, K)), 10.0 * np.sign(np.sin(np.linspace(0, 9, K)))], 1)
+        b.closed_loop(_bench.pi_law(0.05, 5.0, sample_period=1e-3), ref, [False, True], current_limit=3.0, seed=1)
+    assert diffs
+    for d in diffs:
+        assert max(d.values()) < 1e-11, d
 
 
 def test_step_halving_changes_data_far_below_noise():

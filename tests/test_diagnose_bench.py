@@ -2,7 +2,7 @@
 (`hdjax._testbench.independent`), where the paper model is never exact.
 
 What differs from hdjax's plant, in every dataset here (all `hdjax._testbench.independent.Deviations` on, their
-defaults): the bench is a numpy fixed-step (20 kHz) velocity-level integrator written apart from
+defaults): the bench is a numpy/numba fixed-step (20 kHz) velocity-level integrator written apart from
 hdjax; its low-speed friction is exact stick–slip with a breakaway torque 1.1–1.3× the friction
 level (not tanh(ω/s)); the current comes from a simulated PI current loop on an R–L winding with
 PWM ripple and is *sampled*; strain gauge and tachometer are low-pass filtered, the tachometer

@@ -2,7 +2,7 @@
 clean datasets of the independent bench (`hdjax.bench`), where the paper model is never exact.
 
 What differs from hdjax's plant (all `hdjax.bench.Deviations` on, their defaults): the bench is a
-numpy fixed-step (20 kHz) velocity-level integrator written apart from hdjax; its low-speed
+numpy/numba fixed-step (20 kHz) velocity-level integrator written apart from hdjax; its low-speed
 friction is exact stick–slip with a breakaway torque above the friction level, and its sliding
 friction is eq. 9 with the non-viscous part clipped at zero (not tanh(ω/s)); the current comes from
 a simulated PI current loop with PWM ripple and is *sampled*; the sensors are low-pass filtered,

@@ -1,6 +1,6 @@
 """The independent virtual test bench (public entry points of `hdjax._testbench.independent`): datasets that
 hdjax's identification, diagnosis and tuning are judged on, made without hdjax's plant, solver or
-model code (numpy fixed-step integrator, stick–slip friction with breakaway, a current loop,
+model code (a fixed-step integrator in numpy, its loop compiled by numba; stick–slip friction with breakaway, a current loop,
 sensor dynamics, drives drawn around HD1/HD2; see the `hdjax._testbench.independent` module docstring for what
 differs from hdjax's plant).
 
