@@ -28,7 +28,7 @@ from hdjax._plant.sharding import shard_experiments
 p, drive = hd2()
 rng = np.random.default_rng(0)
 t = np.arange(0.0, 0.1, 1e-3)
-sim = hdjax.Simulator(fixed_step=5e-4)  # fixed steps: quick to compile, same sharding path
+sim = hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=1))  # the fit's fixed-step plant: quick to compile, same sharding path
 exps = []
 for mode, A, f in (("constrained", 2.0, 5.0), ("free", 1.5, 3.0), ("free", 0.8, 2.0)):
     i = A * np.sin(2 * np.pi * f * t) * np.minimum(1.0, t / 0.05)
