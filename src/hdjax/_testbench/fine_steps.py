@@ -11,7 +11,7 @@ Why (2-core machine, 2026-12-08): the vectorised loop spends about 130 µs of nu
 integrations: the operator's pilot runs, the effect's calibration, the final run) took 17 s; the
 test suite makes about twenty such datasets, and the diagnosis benchmark one per seed.
 
-This module imports numba only; nothing of hdjax or JAX.
+This module imports numpy and numba only; nothing of hdjax or JAX.
 """
 
 from __future__ import annotations
@@ -30,9 +30,11 @@ AVAILABLE = numba is not None
 
 
 def _jit(f):
-    """`numba.njit` (compiled on first call, cached on disk beside this file; division by zero gives
-    inf/nan as in numpy), or f itself without numba."""
+    """`numba.njit` (compiled on first call, cached on disk beside this file, or in numba's user-wide
+    cache where this folder is read-only; division by zero gives inf/nan as in numpy), or f itself
+    without numba."""
     return f if numba is None else numba.njit(cache=True, error_model="numpy")(f)
+
 
 #: State rows of `run_steps`' `S` array (B columns each).
 STATE = ("thm", "wm", "tho", "wo", "ia", "integ", "volt", "zd", "zl", "Tprev", "idel", "Fprev", "zp", "rprev", "stk")
