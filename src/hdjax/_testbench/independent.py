@@ -464,9 +464,11 @@ def _setup(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed) -> 
     delay_steps = m["input_delay"] * fine_rate
     d0 = np.floor(delay_steps).astype(int)
     dfr = delay_steps - d0
-    return dict(st=st, p=p, brk=brk, h=h, ns=ns, B=B, N=N, Km=Km, iN=iN, Jeff=Jeff, K1=K1, Tst=Tst, Tss2=Tss2,
-                Jh=Jh, iJl=iJl, on=on, m=m, lug=lug, any_lug=any_lug, pre=pre, any_pre=any_pre, sig0=sig0, sig1=sig1,
-                wb=wb, wr=wr, tf=tf, ae=ae, be=be, sub=sub, Kp=Kp, KiH=KiH, d0=d0, dfr=dfr)  # fmt: skip
+    invA_stuck = np.where(pre, 1.0 / (Jh + sig0 * h + sig1), 0.0)  # stuck, or presliding on the bristle
+    return dict(p=p, brk=brk, h=h, ns=ns, B=B, Km=Km, iN=iN, K1=K1, Tst=Tst, Tss2=Tss2, Jh=Jh, iJl=iJl, on=on, m=m,
+                lug=lug, any_lug=any_lug, pre=pre, any_pre=any_pre, sig0=sig0, sig1=sig1, invA_stuck=invA_stuck,
+                wb=wb, wr=wr, tf=tf, ae=ae, be=be, sub=sub, Kp=Kp, KiH=KiH, d0=d0, dfr=dfr,
+                hyst_sigma=specs.get("hysteresis_sigma", 1.0))  # fmt: skip
 
 
 def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed, hook=None, hook_every=1):
@@ -499,17 +501,20 @@ def _integrate(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed,
     if not fine_steps.AVAILABLE:
         return _integrate_numpy(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed, hook, hook_every)
     c = _setup(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
-    p, brk, ns, B, m, on, pre = c["p"], c["brk"], c["ns"], c["B"], c["m"], c["on"], c["pre"]
-    P = np.array([c["h"], c["iN"], c["Km"], c["Jh"], c["K1"], c["Tst"], c["Tss2"], p["Tvp"], p["Tvn"], p["Tsp"],
-                  p["Tsn"], p["Tssp1"], p["Tssn1"], brk["p"], brk["n"], c["ae"], c["be"], c["Kp"], c["KiH"], c["wb"],
-                  c["wr"], dev.viscous_exponent, specs.get("hysteresis_sigma", 1.0), TH], float)  # fmt: skip
-    F = np.array([dev.current_loop, hook is not None, on["cogging"], on["kinematic_error"], on["lost_motion"],
-                  on["nonlinear_stiffness"], on["rate_independent_hysteresis"], on["position_dependent_friction"],
-                  on["load_dependent_friction"], on["thermal_drift"], on["input_delay"], c["any_lug"], c["any_pre"],
-                  dev.viscous_exponent != 1.0], np.int64)  # fmt: skip
-    invA2 = np.where(pre, 1.0 / (c["Jh"] + c["sig0"] * c["h"] + c["sig1"]), 0.0)
-    C = np.stack([c["iJl"], c["lug"], pre, c["sig0"], c["sig1"], invA2, c["d0"], c["dfr"]]
-                 + [m[e] for e in fine_steps.COLUMNS[8:]]).astype(float)  # fmt: skip
+    p, brk, ns, B, m, on = c["p"], c["brk"], c["ns"], c["B"], c["m"], c["on"]
+    # the compiled loop's inputs as arrays, in the orders `fine_steps.PARAMS`, `FLAGS`, `COLUMNS` name
+    params = {**{k: c[k] for k in ("h", "iN", "Km", "Jh", "K1", "Tst", "Tss2", "ae", "be", "Kp", "KiH", "wb", "wr",
+                                    "hyst_sigma")},
+              **{k: p[k] for k in ("Tvp", "Tvn", "Tsp", "Tsn", "Tssp1", "Tssn1")},
+              "brk_p": brk["p"], "brk_n": brk["n"], "kappa": dev.viscous_exponent, "TH": TH}  # fmt: skip
+    flags = {**{e: on[e] for e in EFFECTS if e in fine_steps.FLAGS}, "current_loop": dev.current_loop,
+             "hook": hook is not None, "any_lug": c["any_lug"], "any_pre": c["any_pre"],
+             "power_viscous": dev.viscous_exponent != 1.0}  # fmt: skip
+    columns = {**{e: m[e] for e in EFFECTS if e in fine_steps.COLUMNS},
+               **{k: c[k] for k in ("iJl", "lug", "pre", "sig0", "sig1", "d0", "dfr")}, "invA2": c["invA_stuck"]}
+    P = np.array([params[k] for k in fine_steps.PARAMS], float)
+    F = np.array([flags[k] for k in fine_steps.FLAGS], np.int64)
+    C = np.stack([np.broadcast_to(np.asarray(columns[k], float), (B,)) for k in fine_steps.COLUMNS])
     tf = c["tf"] if c["tf"] is not None else np.ones((1, B))
     shapes = [specs.get(e) for e in ("cogging", "kinematic_error", "position_dependent_friction")]
     width = max([len(s["k"]) for s in shapes if s is not None], default=1)
@@ -539,18 +544,17 @@ def _integrate_numpy(bench, icmd, free, start, mags, specs, dev, fine_rate, low_
     the loop used where numba cannot be imported. About 130 µs per fine step whatever the number of
     records (2-core machine)."""
     c = _setup(bench, icmd, free, start, mags, specs, dev, fine_rate, low_speed)
-    st, p, brk, h, ns, B, N, Km, iN = (c[k] for k in ("st", "p", "brk", "h", "ns", "B", "N", "Km", "iN"))
-    Jeff, K1, Tst, Tss2, Jh, iJl, on, m = (c[k] for k in ("Jeff", "K1", "Tst", "Tss2", "Jh", "iJl", "on", "m"))
+    p, brk, h, ns, B, Km, iN = (c[k] for k in ("p", "brk", "h", "ns", "B", "Km", "iN"))
+    K1, Tst, Tss2, Jh, iJl, on, m = (c[k] for k in ("K1", "Tst", "Tss2", "Jh", "iJl", "on", "m"))
     lug, any_lug, pre, any_pre, sig0, sig1, wb, wr, tf = (
         c[k] for k in ("lug", "any_lug", "pre", "any_pre", "sig0", "sig1", "wb", "wr", "tf"))
-    ae, be, sub, Kp, KiH, d0, dfr = (c[k] for k in ("ae", "be", "sub", "Kp", "KiH", "d0", "dfr"))
+    ae, be, sub, Kp, KiH, d0, dfr, hyst_sigma = (c[k] for k in ("ae", "be", "sub", "Kp", "KiH", "d0", "dfr", "hyst_sigma"))
     cols = np.arange(B)
-    hyst_sigma = specs.get("hysteresis_sigma", 1.0)
     # candidate rows: 0 slide +, 1 slide −, 2 stuck, (3 LuGre)
     nr = 4 if any_lug else 3
     invA = np.zeros((nr, B))
     invA[0], invA[1] = 1.0 / (Jh + TH * p["Tvp"]), 1.0 / (Jh + TH * p["Tvn"])
-    invA[2] = np.where(pre, 1.0 / (Jh + sig0 * h + sig1), 0.0)  # stuck, or presliding on the bristle
+    invA[2] = c["invA_stuck"]
     F0 = np.zeros((nr, B))
 
     thm, wm, tho, wo = (np.zeros(B) for _ in range(4))
