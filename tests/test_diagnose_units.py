@@ -10,6 +10,7 @@ from hdjax._discrepancy.loop import (
     _drift_share,
     _FoldFits,
     _gn_step,
+    _jacobian_columns,
     _judge,
     _refusal,
     _rule_for,
@@ -783,3 +784,23 @@ def test_evidence_of_a_finding_named_by_its_between_record_trend_says_which_tren
     # a cubic named by the held-out rules: the trend is reported, nothing said about refusals
     named = dict(gain, held_out_rules_refused=[])
     assert "would not have" not in _evidence_text("nonlinear_stiffness", {}, {}, {"gain": named}, None)
+
+
+@pytest.mark.parametrize("block", [1, 3, 7, 40])
+def test_jacobian_columns_come_in_fixed_size_blocks_in_the_order_asked(block):
+    """`_jacobian_columns` (the diagnosis's Jacobian requests, `JACOBIAN_BLOCK` tangents per call so
+    that one compiled program serves every request): on a linear map r = A·z, whose directional
+    derivative along e_j is A's column j, the columns come back in the order asked for whatever the
+    block size (one block, several, a padded last one), and every call has the block's shape."""
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((2, 3, 5, 12))  # (exp, channel, time, z)
+    shapes = []
+
+    def jvps(E):
+        shapes.append(E.shape)
+        return np.einsum("ectz,kz->ectk", A, E)
+
+    need = [11, 0, 5, 3, 9, 2, 7]
+    J = _jacobian_columns(jvps, 12, need, block=block)
+    np.testing.assert_array_equal(J, A[..., need])
+    assert set(shapes) == {(block, 12)} and len(shapes) == -(-len(need) // block)
