@@ -170,13 +170,18 @@ def test_a_per_experiment_estimate_the_record_does_not_pin_down_is_left_out_of_t
     stopped it. With `MarquardtLM(shrink_on_reject=True)` the fit moves it to about 0.59 N·m, with a
     standard error 3 % of the estimate: the motor never turns backward, but it starts from rest,
     where the smoothed plant (the default adaptive solver's tanh at zero velocity) lets the
-    negative-direction friction act, and the changed start carries over into the output angle.)"""
+    negative-direction friction act, and the changed start carries over into the output angle.)
+
+    The fits run on the fixed-step plant (`VelocityImplicit`, 4 substeps: the commands' numerics,
+    exact sticking) since 2026-12-08: the same verdicts, 5.1 s instead of 22.7 s on the adaptive
+    default."""
     p, drive, exps, _ = campaign
     forward = _forward_only_record(p, drive, np.asarray(exps[0].time), seed=1)
     batch = hdjax.stack_experiments([exps[3], exps[5], forward])
     free = ("Tsp", "Tvn")
     mask = np.array([[True, True], [True, True], [True, True]])
-    res = fit_per_experiment(joint.params, drive, batch, mask, free=free, max_steps=12)
+    res = fit_per_experiment(joint.params, drive, batch, mask, free=free, max_steps=12,
+                             simulator=hdjax.Simulator(solver=hdjax.VelocityImplicit(substeps=4)))
     assert res.converged.all()
     assert res.undetermined[2, 1] != "" and "does not" in res.undetermined[2, 1], res.undetermined
     assert not np.isfinite(res.std_error[2, 1]) or res.std_error[2, 1] > 0.3 * abs(res.values[2, 1])
