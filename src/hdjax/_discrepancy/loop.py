@@ -479,8 +479,11 @@ class _Loop:
         need = [j for j in sel if not (reuse and j in self.jac_cache)]
         if need:
             t1 = time.perf_counter()
-            jvps = lambda E: self.jac_prob.jacobian(jnp.asarray(z), jnp.asarray(E), self.p_base, self.batch,
-                                                    jnp.asarray(self.sig_exp))[1]  # fmt: skip
+            z_dev, sig_dev = jnp.asarray(z), jnp.asarray(self.sig_exp)  # once for every block
+
+            def jvps(E):
+                return self.jac_prob.jacobian(z_dev, jnp.asarray(E), self.p_base, self.batch, sig_dev)[1]
+
             Jn = _jacobian_columns(jvps, len(z), need)
             for k, j in enumerate(need):
                 self.jac_cache[j] = Jn[..., k]
